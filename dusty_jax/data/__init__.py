@@ -1,0 +1,1 @@
+"""Data: real-scan readers (kitti, mpo), synthetic scenes, prepared arrays."""

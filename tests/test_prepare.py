@@ -1,0 +1,99 @@
+"""Readers and the prepare CLI on small folders written in the real layouts."""
+
+import os
+
+import numpy as np
+import pytest
+
+from conftest import random_depth, sensor_order_points
+from dusty_jax import prepare
+from dusty_jax.data import arrays, kitti as kitti_io, mpo as mpo_io
+from dusty_jax.sensor import get_sensor
+
+
+def _kitti_tree(root, kitti, seqs=(('00', 3), ('08', 2), ('11', 1))):
+  truth = {}
+  for seq, n in seqs:
+    for i in range(n):
+      d = random_depth(kitti, seed=int(seq) * 10 + i)
+      path = os.path.join(root, 'sequences', seq, 'velodyne', f'{i:06d}.bin')
+      kitti_io.write_bin(path, sensor_order_points(d, kitti, seed=i))
+      truth[path] = d
+  return truth
+
+
+def test_prepare_kitti_layout(kitti, tmp_path):
+  root, out = str(tmp_path / 'kitti'), str(tmp_path / 'prepared')
+  truth = _kitti_tree(root, kitti)
+  # A truncated file and an empty one in the training split.
+  bad = os.path.join(root, 'sequences', '00', 'velodyne', '000099.bin')
+  with open(bad, 'wb') as f:
+    f.write(b'\0' * 20)
+  open(os.path.join(root, 'sequences', '01_empty.bin'), 'wb').close()
+  empty = os.path.join(root, 'sequences', '01', 'velodyne', '000000.bin')
+  os.makedirs(os.path.dirname(empty))
+  open(empty, 'wb').close()
+  logs = []
+  meta = prepare.prepare('kitti', root, out, log=logs.append)
+  assert meta['splits'] == {'train': 3, 'val': 2, 'test': 1}
+  reasons = {s['path']: s['reason'] for s in meta['skipped']['train']}
+  assert 'not a multiple of 16' in reasons[bad]
+  assert 'empty file' in reasons[empty]
+  assert any('skipped' in l and bad in l for l in logs)
+  train = arrays.load_split(out, 'train', kitti)
+  assert train.dtype == np.float32 and train.shape == (3, 64, 256)
+  assert isinstance(train, np.memmap)
+  want = [truth[p] for p in sorted(truth) if '/00/' in p]
+  np.testing.assert_allclose(np.asarray(train), np.stack(want), rtol=1e-5)
+  angles = arrays.load_angles(out, kitti)
+  assert angles.shape == (2, 64, 256) and np.isfinite(angles).all()
+  # Estimated angles agree with the nominal angles the test wrote.
+  nominal = kitti.nominal_angles()
+  np.testing.assert_allclose(angles[0], nominal[0], atol=1e-5)
+
+
+def test_prepare_cli_and_errors(kitti, tmp_path, capsys):
+  root, out = str(tmp_path / 'kitti'), str(tmp_path / 'out')
+  _kitti_tree(root, kitti, seqs=(('00', 1),))
+  prepare.main(['--dataset', 'kitti', '--root', root, '--out', out])
+  assert 'train: 1 scans written' in capsys.readouterr().out
+  with pytest.raises(SystemExit, match="unknown dataset 'nuscenes'"):
+    prepare.main(['--dataset', 'nuscenes', '--root', root, '--out', out])
+  with pytest.raises(SystemExit, match='no such directory'):
+    prepare.main(['--dataset', 'kitti', '--root', str(tmp_path / 'nope'),
+                  '--out', out])
+  with pytest.raises(SystemExit, match='sequences: no such directory'):
+    prepare.main(['--dataset', 'kitti', '--root', str(tmp_path), '--out', out])
+
+
+def test_read_bin_rejects_nan(tmp_path):
+  path = str(tmp_path / 'nan.bin')
+  np.float32([[1, 2, 3, 0], [np.nan, 1, 1, 0]]).tofile(path)
+  with pytest.raises(ValueError, match=r'nan\.bin: 1 of 2 points have NaN'):
+    kitti_io.read_bin(path)
+
+
+def test_prepare_mpo_layout(tmp_path):
+  mpo = get_sensor('mpo')
+  data = tmp_path / 'mpo' / 'Data'
+  data.mkdir(parents=True)
+  depth = random_depth(mpo, seed=11)
+  pts = sensor_order_points(depth, mpo, extra_offgrid=False)[:, :3]
+  el = np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1]))
+  ring = mpo.height - 1 - np.argmin(np.abs(el[:, None] - mpo.elevation), 1)
+  np.save(data / 'class0_set001_scan00001.npy',
+          np.concatenate([pts, ring[:, None].astype(np.float32)], 1))
+  np.save(data / 'class0_set007_scan00002.npy', np.zeros((4, 2), np.float32))
+  meta = prepare.prepare('mpo', str(tmp_path / 'mpo'), str(tmp_path / 'out'))
+  assert meta['splits']['train'] == 1 and meta['splits']['val'] == 0
+  assert 'needs x, y, z and a ring id' in meta['skipped']['val'][0]['reason']
+  got = arrays.load_split(str(tmp_path / 'out'), 'train', mpo)
+  np.testing.assert_allclose(got[0], depth, rtol=1e-5)
+
+
+def test_load_split_shape_mismatch(tmp_path, kitti):
+  np.save(tmp_path / 'train.npy', np.zeros((2, 32, 256), np.float32))
+  with pytest.raises(ValueError, match=r'train\.npy: array of shape'):
+    arrays.load_split(str(tmp_path), 'train', kitti)
+  with pytest.raises(FileNotFoundError, match='dusty_jax.prepare'):
+    arrays.load_split(str(tmp_path), 'val', kitti)
