@@ -136,17 +136,31 @@ def _scatter_nearest(rows, cols, xyz, keep, sensor, return_xyz):
   return image, points
 
 
-def _split_rings(azimuth: np.ndarray) -> np.ndarray:
+# Within a ring the azimuth only grows (up to jitter far below this).
+RING_BREAK_AZIMUTH = np.deg2rad(10.0)
+
+
+def _split_rings(azimuth: np.ndarray, elevation=None, min_jump=None):
   """Start index of each ring in a sensor-ordered sweep.
 
   Within a ring the azimuth increases (counter-clockwise, starting straight
-  ahead); a new ring begins where the unwrapped azimuth falls back by more
-  than half a turn. Unlike the "quadrant 3 then quadrant 0" rule, this also
-  splits rings that have no return straight ahead.
+  ahead); a new ring begins wherever it falls back by more than
+  RING_BREAK_AZIMUTH. Unlike the "quadrant 3 then quadrant 0" rule, this
+  also splits rings that have no return straight ahead. With ``elevation``,
+  a jump larger than ``min_jump`` radians also starts a ring (for sparse
+  rings whose returns do not overlap in azimuth).
   """
   a = np.mod(azimuth, 2 * np.pi)
-  jumps = np.flatnonzero(np.diff(a) < -np.pi) + 1
-  return np.concatenate([[0], jumps])
+  brk = np.diff(a) < -RING_BREAK_AZIMUTH
+  if elevation is not None:
+    brk |= np.abs(np.diff(elevation)) > min_jump
+  return np.concatenate([[0], np.flatnonzero(brk) + 1])
+
+
+def _ring_ids(starts, n):
+  ids = np.zeros(n, np.int64)
+  ids[starts[1:]] = 1
+  return np.cumsum(ids)
 
 
 def _assign_rows(ring_elevation: np.ndarray, sensor: SensorSpec) -> np.ndarray:
@@ -203,22 +217,25 @@ def unfold_scan(points: np.ndarray, sensor: SensorSpec, source: str = 'scan',
   xyz = points[:, :3].astype(np.float64)
   azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
   starts = _split_rings(azimuth)
-  ring_id = np.zeros(len(xyz), np.int64)
-  ring_id[starts[1:]] = 1
-  ring_id = np.cumsum(ring_id)
   n_rings = len(starts)
+  ring_id = _ring_ids(starts, len(xyz))
 
   if n_rings == sensor.height:
     rows_of_ring = np.arange(n_rings)
     matched = False
   else:
+    elev = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
+    if n_rings < sensor.height and sensor.height > 1:
+      # Rings may be missing or merged: also split on elevation jumps.
+      spacing = np.min(np.abs(np.diff(sensor.elevation)))
+      starts = _split_rings(azimuth, elev, 0.6 * spacing)
+      n_rings = len(starts)
+      ring_id = _ring_ids(starts, len(xyz))
     if n_rings > sensor.height:
       raise ValueError(
           f'{source}: found {n_rings} rings but sensor {sensor.name!r} has '
           f'{sensor.height}; is this the right sensor, and is the file in '
           'sensor order?')
-    horiz = np.hypot(xyz[:, 0], xyz[:, 1])
-    elev = np.arctan2(xyz[:, 2], horiz)
     ring_elev = np.array(
         [np.median(elev[ring_id == r]) for r in range(n_rings)])
     rows_of_ring = _assign_rows(ring_elev, sensor)

@@ -1,0 +1,48 @@
+"""The one place that knows about orbax: save, restore, and load for users."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import ml_collections
+import orbax.checkpoint as ocp
+
+CONFIG_FILE = 'config.json'
+
+
+def manager(workdir: str, keep: int = 3, interval: int = 1) -> ocp.CheckpointManager:
+  path = os.path.join(os.path.abspath(workdir), 'checkpoints')
+  opts = ocp.CheckpointManagerOptions(max_to_keep=keep,
+                                      save_interval_steps=interval, create=True)
+  return ocp.CheckpointManager(path, options=opts)
+
+
+def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
+  return mngr.save(step, args=ocp.args.StandardSave(state), force=force)
+
+
+def restore_latest(mngr: ocp.CheckpointManager, target):
+  """(state, step) from the newest checkpoint, or (target, None) if none."""
+  step = mngr.latest_step()
+  if step is None:
+    return target, None
+  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
+  return mngr.restore(step, args=ocp.args.StandardRestore(abstract)), step
+
+
+def save_config(workdir: str, config):
+  os.makedirs(workdir, exist_ok=True)
+  with open(os.path.join(workdir, CONFIG_FILE), 'w') as f:
+    f.write(config.to_json(indent=2))
+
+
+def load_config(workdir: str) -> ml_collections.ConfigDict:
+  path = os.path.join(workdir, CONFIG_FILE)
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f'{path}: not a training run directory (no '
+                            f'{CONFIG_FILE}); train one with '
+                            '`python -m dusty_jax.train --workdir DIR`')
+  with open(path) as f:
+    return ml_collections.ConfigDict(json.load(f))

@@ -1,0 +1,125 @@
+"""Cylinder-aware convolutions with equalized learning rate.
+
+A range image is a cylinder: every convolution pads horizontally by wrapping
+around and vertically by reflection. Tensors are NHWC.
+
+Two implementations of each convolution, chosen per backend (``impl``):
+  * ``'matmul'``: patches gathered with slices, then one matrix product. On
+    the CPU, XLA's convolution gradients (and the double-backward of the R1
+    penalty) are several times slower than matmuls of the same size; written
+    this way, forward, backward and double-backward are all plain matmuls.
+  * ``'xla'``: ``lax.conv_general_dilated``, which maps to cuDNN on a GPU.
+Both compute the same function; tests check they agree.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+LEAKY_SLOPE = 0.2
+ACT_GAIN = math.sqrt(2.0)  # He gain of leaky ReLU, applied after activation.
+
+
+def default_impl() -> str:
+  return 'matmul' if jax.default_backend() == 'cpu' else 'xla'
+
+
+def cylinder_pad(x, top: int, bottom: int, left: int, right: int):
+  """Pads NHWC: wraps horizontally (the scan is a cylinder), reflects vertically."""
+  if left or right:
+    w = x.shape[2]
+    parts = []
+    if left:
+      parts.append(x[:, :, w - left:])
+    parts.append(x)
+    if right:
+      parts.append(x[:, :, :right])
+    x = jnp.concatenate(parts, axis=2)
+  if top or bottom:
+    x = jnp.pad(x, ((0, 0), (top, bottom), (0, 0), (0, 0)), mode='reflect')
+  return x
+
+
+def leaky_act(x, bias):
+  """Bias, leaky ReLU 0.2 and the sqrt(2) gain (the authors' FusedLeakyReLU)."""
+  return jax.nn.leaky_relu(x + bias, LEAKY_SLOPE) * ACT_GAIN
+
+
+def _patches(x, kh: int, kw: int):
+  """(B, H, W, C) -> (B, H-kh+1, W-kw+1, kh*kw*C), taps in (i, j, c) order."""
+  _, h, w, _ = x.shape
+  ho, wo = h - kh + 1, w - kw + 1
+  cols = [x[:, i:i + ho, j:j + wo, :] for i in range(kh) for j in range(kw)]
+  return jnp.concatenate(cols, axis=-1)
+
+
+def _matmul(p, w2d):
+  return lax.dot_general(p, w2d, (((p.ndim - 1,), (0,)), ((), ())))
+
+
+def space_to_depth(x):
+  """(B, 2h, 2w, C) -> (B, h, w, 4C), channels in (di, dj, c) order."""
+  b, h, w, c = x.shape
+  x = x.reshape(b, h // 2, 2, w // 2, 2, c).transpose(0, 1, 3, 2, 4, 5)
+  return x.reshape(b, h // 2, w // 2, 4 * c)
+
+
+def conv_down(x, w, impl: str):
+  """4x4 stride-2 convolution after a 1-pixel cylinder pad: (H, W) -> (H/2, W/2).
+
+  ``w``: (4, 4, Cin, Cout), already scaled.
+  """
+  x = cylinder_pad(x, 1, 1, 1, 1)
+  if impl == 'xla':
+    return lax.conv_general_dilated(x, w, (2, 2), 'VALID',
+                                    dimension_numbers=('NHWC', 'HWIO', 'NHWC'))
+  # A 4x4 stride-2 conv is a 2x2 stride-1 conv of the space-to-depth input.
+  cin, cout = w.shape[2], w.shape[3]
+  w_s2d = w.reshape(2, 2, 2, 2, cin, cout).transpose(0, 2, 1, 3, 4, 5)
+  w_s2d = w_s2d.reshape(2 * 2 * 4 * cin, cout)  # (a, b, di, dj, c)
+  return _matmul(_patches(space_to_depth(x), 2, 2), w_s2d)
+
+
+# For output phase r of the stride-2 transposed conv (padding 3 after a
+# 1-pixel pad), the two input taps at offsets r, r+1 use kernel rows:
+_UP_TAPS = ((3, 1), (2, 0))
+
+
+def conv_up(x, w, impl: str):
+  """4x4 stride-2 transposed conv after a 1-pixel cylinder pad: (H, W) -> (2H, 2W).
+
+  The authors' ``ConvTranspose2d(k=4, s=2, p=3)`` on a padded input. ``w``:
+  (4, 4, Cin, Cout), already scaled, indexed as PyTorch's transposed kernel.
+  """
+  x = cylinder_pad(x, 1, 1, 1, 1)
+  b, hp, wp, _ = x.shape
+  h, wd = hp - 2, wp - 2
+  cout = w.shape[3]
+  if impl == 'xla':
+    # Transposed conv = conv of the 2-dilated input with the flipped kernel.
+    return lax.conv_general_dilated(
+        x, w[::-1, ::-1], (1, 1), ((0, 0), (0, 0)), lhs_dilation=(2, 2),
+        dimension_numbers=('NHWC', 'HWIO', 'NHWC'))[:, :2 * h, :2 * wd]
+  phases = []
+  for ry in range(2):
+    row = []
+    for rx in range(2):
+      taps = w[jnp.array(_UP_TAPS[ry])][:, jnp.array(_UP_TAPS[rx])]
+      p = _patches(x[:, ry:ry + h + 1, rx:rx + wd + 1], 2, 2)
+      row.append(_matmul(p, taps.reshape(-1, cout)))
+    phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
+  y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
+  return y.reshape(b, 2 * h, 2 * wd, cout)
+
+
+def blur_vh(x):
+  """Fixed [1, 2, 1]/4 vertical and horizontal blurs, stacked as channels."""
+  v = cylinder_pad(x, 1, 1, 0, 0)
+  v = 0.25 * v[:, :-2] + 0.5 * v[:, 1:-1] + 0.25 * v[:, 2:]
+  h = cylinder_pad(x, 0, 0, 1, 1)
+  h = 0.25 * h[:, :, :-2] + 0.5 * h[:, :, 1:-1] + 0.25 * h[:, :, 2:]
+  return jnp.concatenate([v, h], axis=-1)

@@ -1,0 +1,154 @@
+"""DUSty generator and discriminator (the paper's Table I), Flax linen.
+
+Shapes come from the sensor: the first generator kernel and the last
+discriminator kernel are H/16 x W/16. Every layer uses the equalized learning
+rate: weights are drawn N(0, 1) and scaled at run time by 1/sqrt(fan_in)
+(the sqrt(2) gain of leaky ReLU is applied after the activation, as in the
+authors' code). Fan-in is the number of inputs each output actually sees
+(4 * Cin for a stride-2 transposed 4x4 conv); the authors' PyTorch wrapper
+uses ``weight[0].numel()``, which for transposed convs is Cout * 16 instead.
+
+Models:
+  * ``baseline``: 1 output channel, tanh inverse depth; the scan is x_tilde.
+  * ``dusty1``: + a measurability logit, pixel-level Gumbel-sigmoid mask.
+  * ``dusty2``: + an image-level logit; masks multiplied, image-level noise
+    off at test time.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from dusty_jax import gumbel, layers
+from dusty_jax.projection import ALPHA
+from dusty_jax.sensor import SensorSpec
+
+MODELS = {'baseline': 1, 'dusty1': 2, 'dusty2': 3}  # output channels.
+DOWNSAMPLE = 16  # four stride-2 stages.
+
+
+def check_shape(sensor: SensorSpec):
+  h, w = sensor.shape
+  if h % DOWNSAMPLE or w % DOWNSAMPLE:
+    raise ValueError(f'sensor {sensor.name!r}: H and W must be multiples of '
+                     f'{DOWNSAMPLE} for this network, got {h}x{w}')
+  return h // DOWNSAMPLE, w // DOWNSAMPLE
+
+
+def _normal(key, shape, dtype=jnp.float32):
+  return jax.random.normal(key, shape, dtype)
+
+
+class EqualConv(nn.Module):
+  """4x4 stride-2 conv (``up`` transposed or down), no bias, eq-lr."""
+  features: int
+  up: bool
+  impl: str
+
+  @nn.compact
+  def __call__(self, x):
+    cin = x.shape[-1]
+    w = self.param('kernel', _normal, (4, 4, cin, self.features))
+    fan_in = (4 if self.up else 16) * cin
+    w = w * (1.0 / math.sqrt(fan_in))
+    return (layers.conv_up if self.up else layers.conv_down)(x, w, self.impl)
+
+
+class Generator(nn.Module):
+  sensor: SensorSpec
+  out_channels: int = 2
+  latent_dim: int = 512
+  ch_base: int = 64
+  ch_max: int = 512
+  impl: str = 'matmul'
+
+  def channels(self, i):
+    return min(self.ch_base << i, self.ch_max)
+
+  @nn.compact
+  def __call__(self, z):
+    h0, w0 = check_shape(self.sensor)
+    c = self.channels(3)
+    # Transposed conv of a 1x1 input with an (H/16, W/16) kernel == dense.
+    w = self.param('proj', _normal, (self.latent_dim, h0 * w0 * c))
+    x = (z @ w) * (1.0 / math.sqrt(self.latent_dim))
+    x = x.reshape(z.shape[0], h0, w0, c)
+    x = layers.leaky_act(x, self.param('proj_bias', nn.initializers.zeros, (c,)))
+    for i in (2, 1, 0):
+      x = EqualConv(self.channels(i), up=True, impl=self.impl, name=f'up{3 - i}')(x)
+      x = layers.leaky_act(
+          x, self.param(f'up{3 - i}_bias', nn.initializers.zeros, (x.shape[-1],)))
+    x = EqualConv(self.out_channels, up=True, impl=self.impl, name='head')(x)
+    return x + self.param('head_bias', nn.initializers.zeros,
+                          (self.out_channels,))
+
+
+class Discriminator(nn.Module):
+  sensor: SensorSpec
+  ch_base: int = 64
+  ch_max: int = 512
+  impl: str = 'matmul'
+
+  @nn.compact
+  def __call__(self, x):
+    """x: (B, H, W) scans -> (B,) logits."""
+    h0, w0 = check_shape(self.sensor)
+    x = layers.blur_vh(x[..., None])
+    for i in range(4):
+      c = min(self.ch_base << i, self.ch_max)
+      x = EqualConv(c, up=False, impl=self.impl, name=f'down{i}')(x)
+      x = layers.leaky_act(x, self.param(f'down{i}_bias', nn.initializers.zeros, (c,)))
+    x = x.reshape(x.shape[0], -1)
+    w = self.param('out', _normal, (x.shape[-1], 1))
+    b = self.param('out_bias', nn.initializers.zeros, (1,))
+    return ((x @ w) * (1.0 / math.sqrt(x.shape[-1])) + b)[:, 0]
+
+
+def render(model: str, raw, key, tau: float = 1.0, train: bool = True):
+  """Generator output (B, H, W, C) -> dict of what the scan is made of.
+
+  Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability logits,
+  (B, H, W) for dusty1, (B, H, W, 2) pixel/image for dusty2), ``mask`` (the
+  sampled binary mask) and ``scan`` (x = m * x_tilde + (1 - m) * ALPHA).
+  """
+  inv = jnp.tanh(raw[..., 0])
+  if model == 'baseline':
+    return {'inv_depth': inv, 'scan': inv, 'mask': jnp.ones_like(inv)}
+  kp, ki = jax.random.split(key)
+  if model == 'dusty1':
+    logit = raw[..., 1]
+    mask = gumbel.pixel_mask(kp, logit, tau)
+  elif model == 'dusty2':
+    logit = raw[..., 1:3]
+    mask = (gumbel.pixel_mask(kp, logit[..., 0], tau) *
+            gumbel.image_mask(ki, logit[..., 1], tau, train))
+  else:
+    raise ValueError(f'unknown model {model!r}; known: {sorted(MODELS)}')
+  scan = mask * inv + (1.0 - mask) * ALPHA
+  return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
+
+
+def measurability(model: str, logit) -> Any:
+  """Probability that each pixel returns a point (test-time, noise-free)."""
+  if model == 'dusty1':
+    return jax.nn.sigmoid(logit)
+  if model == 'dusty2':
+    return jax.nn.sigmoid(logit[..., 0]) * (logit[..., 1] >= 0)
+  raise ValueError(f'model {model!r} has no measurability map')
+
+
+def build(model: str, sensor: SensorSpec, latent_dim: int = 512,
+          ch_base: int = 64, ch_max: int = 512, impl: str | None = None):
+  """(generator, discriminator) modules for a model name and sensor."""
+  if model not in MODELS:
+    raise ValueError(f'unknown model {model!r}; known: {sorted(MODELS)}')
+  check_shape(sensor)
+  impl = impl or layers.default_impl()
+  g = Generator(sensor, MODELS[model], latent_dim, ch_base, ch_max, impl)
+  d = Discriminator(sensor, ch_base, ch_max, impl)
+  return g, d

@@ -1,0 +1,186 @@
+"""Where metrics and pictures go: JSONL, TensorBoard event files, PNG.
+
+TensorBoard's event format is written directly (TFRecord framing around
+hand-encoded ``Event`` protos), so neither TensorFlow nor clu is needed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import struct
+import time
+
+import numpy as np
+from PIL import Image
+
+# ----------------------------------------------------------------------------
+# CRC32C (Castagnoli), for TFRecord framing.
+# ----------------------------------------------------------------------------
+
+def _crc_table():
+  table = []
+  for i in range(256):
+    c = i
+    for _ in range(8):
+      c = (c >> 1) ^ 0x82F63B78 if c & 1 else c >> 1
+    table.append(c)
+  return table
+
+
+_TABLE = _crc_table()
+
+
+def crc32c(data: bytes) -> int:
+  c = 0xFFFFFFFF
+  for byte in data:
+    c = _TABLE[(c ^ byte) & 0xFF] ^ (c >> 8)
+  return c ^ 0xFFFFFFFF
+
+
+def _masked_crc(data: bytes) -> int:
+  c = crc32c(data)
+  return (((c >> 15) | (c << 17)) + 0xA282EAD8) & 0xFFFFFFFF
+
+
+def tfrecord(data: bytes) -> bytes:
+  length = struct.pack('<Q', len(data))
+  return (length + struct.pack('<I', _masked_crc(length)) + data +
+          struct.pack('<I', _masked_crc(data)))
+
+
+# ----------------------------------------------------------------------------
+# Minimal protobuf encoding of tensorflow.Event / Summary.
+# ----------------------------------------------------------------------------
+
+def _varint(n: int) -> bytes:
+  out = bytearray()
+  while True:
+    b = n & 0x7F
+    n >>= 7
+    out.append(b | (0x80 if n else 0))
+    if not n:
+      return bytes(out)
+
+
+def _field(num: int, wire: int, payload: bytes) -> bytes:
+  return _varint((num << 3) | wire) + payload
+
+
+def _bytes_field(num, data: bytes) -> bytes:
+  return _field(num, 2, _varint(len(data)) + data)
+
+
+def scalar_event(step: int, tag: str, value: float, wall_time: float) -> bytes:
+  val = _bytes_field(1, tag.encode()) + _field(2, 5, struct.pack('<f', value))
+  summary = _bytes_field(1, val)
+  return (_field(1, 1, struct.pack('<d', wall_time)) +
+          _field(2, 0, _varint(step)) + _bytes_field(5, summary))
+
+
+def version_event(wall_time: float) -> bytes:
+  return _field(1, 1, struct.pack('<d', wall_time)) + _bytes_field(
+      3, b'brain.Event:2')
+
+
+class MetricWriter:
+  """Scalars to ``metrics.jsonl`` and a TensorBoard event file in workdir."""
+
+  def __init__(self, workdir: str, enabled: bool = True):
+    self.enabled = enabled
+    if not enabled:
+      return
+    os.makedirs(workdir, exist_ok=True)
+    self.jsonl = open(os.path.join(workdir, 'metrics.jsonl'), 'a')
+    now = time.time()
+    name = f'events.out.tfevents.{int(now)}.{socket.gethostname()}'
+    self.events = open(os.path.join(workdir, name), 'ab')
+    self.events.write(tfrecord(version_event(now)))
+
+  def write(self, step: int, scalars: dict):
+    if not self.enabled:
+      return
+    now = time.time()
+    scalars = {k: float(v) for k, v in scalars.items()}
+    self.jsonl.write(json.dumps({'step': step, 'time': now, **scalars}) + '\n')
+    for k, v in scalars.items():
+      self.events.write(tfrecord(scalar_event(step, k, v, now)))
+    self.flush()
+
+  def flush(self):
+    if self.enabled:
+      self.jsonl.flush()
+      self.events.flush()
+
+  def close(self):
+    if self.enabled:
+      self.jsonl.close()
+      self.events.close()
+
+
+def read_tfrecords(path: str) -> list[bytes]:
+  """Reads back TFRecord payloads, checking both CRCs (for tests and tools)."""
+  out = []
+  with open(path, 'rb') as f:
+    data = f.read()
+  i = 0
+  while i < len(data):
+    (n,) = struct.unpack('<Q', data[i:i + 8])
+    if struct.unpack('<I', data[i + 8:i + 12])[0] != _masked_crc(data[i:i + 8]):
+      raise ValueError(f'{path}: corrupt length CRC at byte {i}')
+    payload = data[i + 12:i + 12 + n]
+    if struct.unpack('<I', data[i + 12 + n:i + 16 + n])[0] != _masked_crc(payload):
+      raise ValueError(f'{path}: corrupt data CRC at byte {i}')
+    out.append(payload)
+    i += 16 + n
+  return out
+
+
+# ----------------------------------------------------------------------------
+# Pictures.
+# ----------------------------------------------------------------------------
+
+# Anchor colours of a perceptually ordered map (dark blue -> yellow).
+_ANCHORS = np.array([[48, 18, 59], [70, 107, 227], [40, 187, 236],
+                     [50, 241, 152], [164, 252, 60], [237, 208, 58],
+                     [251, 128, 34], [210, 49, 5], [122, 4, 3]], np.float32)
+
+
+def colorize(values, lo: float, hi: float, invalid=None) -> np.ndarray:
+  """(H, W) values -> (H, W, 3) uint8; ``invalid`` pixels are black."""
+  v = np.clip((np.asarray(values, np.float32) - lo) / max(hi - lo, 1e-12), 0, 1)
+  pos = v * (len(_ANCHORS) - 1)
+  i = np.minimum(pos.astype(np.int64), len(_ANCHORS) - 2)
+  t = (pos - i)[..., None]
+  rgb = _ANCHORS[i] * (1 - t) + _ANCHORS[i + 1] * t
+  if invalid is not None:
+    rgb[np.asarray(invalid)] = 0
+  return rgb.astype(np.uint8)
+
+
+def save_grid(path: str, rows: list[list[np.ndarray]], scale: int = 2,
+              gap: int = 2):
+  """Saves a grid of (H, W, 3) uint8 tiles as one PNG (rows of tiles)."""
+  h, w = rows[0][0].shape[:2]
+  ncol = max(len(r) for r in rows)
+  canvas = np.full((len(rows) * (h + gap) - gap, ncol * (w + gap) - gap, 3),
+                   255, np.uint8)
+  for i, r in enumerate(rows):
+    for j, tile in enumerate(r):
+      canvas[i * (h + gap): i * (h + gap) + h, j * (w + gap): j * (w + gap) + w] = tile
+  img = Image.fromarray(canvas)
+  if scale != 1:
+    img = img.resize((img.width * scale, img.height * scale), Image.NEAREST)
+  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  img.save(path)
+
+
+def inv_depth_tile(x, alpha: float = -1.0):
+  """Normalised inverse depth in [-1, 1] -> colour tile, drops black."""
+  x = np.asarray(x)
+  return colorize(x, -1.0, 1.0, invalid=x <= alpha)
+
+
+def prob_tile(p):
+  return colorize(np.asarray(p), 0.0, 1.0)

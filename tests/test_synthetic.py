@@ -1,0 +1,116 @@
+"""The simulated LiDAR: determinism, drop statistics, and the real-data path."""
+
+import os
+
+import numpy as np
+import pytest
+
+from dusty_jax import prepare, projection
+from dusty_jax.data import arrays, kitti as kitti_io, synthetic
+
+
+@pytest.fixture(scope='module')
+def scans():
+  from dusty_jax.sensor import get_sensor
+  sensor = get_sensor('kitti')
+  return sensor, [synthetic.render_scan(s, sensor, kind=k)
+                  for s, k in enumerate(synthetic.SCENE_KINDS * 2)]
+
+
+def test_same_seed_same_scan(kitti):
+  a = synthetic.render_scan(7, kitti)
+  b = synthetic.render_scan(7, kitti)
+  c = synthetic.render_scan(8, kitti)
+  np.testing.assert_array_equal(a.depth, b.depth)
+  np.testing.assert_array_equal(a.drop_prob, b.drop_prob)
+  assert not np.array_equal(a.depth, c.depth)
+
+
+def test_drop_fraction_plausible(scans):
+  _, ss = scans
+  fractions = [float(np.mean(s.depth == 0)) for s in ss]
+  # Real KITTI drops roughly 10-25% of 64x256 pixels; allow open rural sky.
+  assert all(0.05 < f < 0.4 for f in fractions), fractions
+  assert 0.1 < np.mean(fractions) < 0.3, fractions
+
+
+def test_glass_drops_far_more_than_asphalt(scans):
+  _, ss = scans
+  mat = np.concatenate([s.material.ravel() for s in ss])
+  p = np.concatenate([s.drop_prob.ravel() for s in ss])
+  obs = np.concatenate([s.depth.ravel() for s in ss])
+  glass, asphalt = (mat == synthetic.MATERIAL_IDS['glass'],
+                    mat == synthetic.MATERIAL_IDS['asphalt'])
+  assert p[glass].mean() > 0.8 > 0.4 > p[asphalt].mean()
+  assert np.mean(obs[glass] == 0) > 3 * np.mean(obs[asphalt] == 0)
+
+
+def test_observed_matches_complete_within_noise(scans):
+  _, ss = scans
+  for s in ss:
+    valid = s.depth > 0
+    assert (s.complete[valid] > 0).all()
+    err = s.depth[valid] - s.complete[valid]
+    assert abs(err.mean()) < 3 * synthetic.RANGE_NOISE_M / np.sqrt(valid.sum()) + 1e-3
+    assert np.abs(err).max() < 6 * synthetic.RANGE_NOISE_M
+    # Drops only where a drop is possible; never a return where p = 1.
+    assert not (valid & (s.drop_prob >= 1)).any()
+    assert ((s.drop_prob >= 0) & (s.drop_prob <= 1)).all()
+
+
+def test_sky_and_ego_always_dropped(scans):
+  _, ss = scans
+  for s in ss:
+    certain = (s.material < 0) | (s.material == synthetic.MATERIAL_IDS['ego'])
+    assert (s.drop_prob[certain] == 1).all() and (s.depth[certain] == 0).all()
+    assert (s.complete[certain] == 0).all()
+  assert any((s.material == synthetic.MATERIAL_IDS['ego']).any() for s in ss)
+
+
+def test_bin_unfolds_to_rendered_image_exactly(scans, tmp_path):
+  sensor, ss = scans
+  for i, s in enumerate(ss):
+    path = str(tmp_path / f'{i:06d}.bin')
+    kitti_io.write_bin(path, synthetic.to_sensor_order(s.depth, sensor))
+    image, report = kitti_io.load_scan(path, sensor)
+    np.testing.assert_allclose(image, s.depth, rtol=2e-6)
+    assert (image > 0).sum() == (s.depth > 0).sum()
+
+
+def test_write_dataset_through_prepare(tiny, tmp_path):
+  out = str(tmp_path / 'syn')
+  meta = synthetic.write_dataset(out, tiny, 4, seed=3,
+                                 splits={'train': 4, 'val': 2}, bins=True,
+                                 progress=False, workers=2)
+  assert meta['splits'] == {'train': 4, 'val': 2}
+  obs = arrays.load_split(out, 'train', tiny)
+  assert obs.shape == (4, 16, 64)
+  comp = arrays.load_split(out, 'train', tiny, 'complete')
+  prob = arrays.load_split(out, 'train', tiny, 'drop_prob')
+  assert comp.shape == prob.shape == obs.shape
+  assert os.path.isfile(os.path.join(out, 'preview.png'))
+  # Same scans with one worker (scene seeds do not depend on workers).
+  one, _, _ = synthetic.simulate(4, tiny, seed=30, progress=False)
+  np.testing.assert_array_equal(one, obs)
+  # The .bin files go through the real KITTI preparation unchanged.
+  prepared = str(tmp_path / 'prepared')
+  prepare.prepare('kitti', os.path.join(out, 'kitti'), prepared, sensor=tiny,
+                  log=lambda m: None)
+  np.testing.assert_allclose(arrays.load_split(prepared, 'train', tiny), obs,
+                             rtol=2e-6)
+
+
+def test_fallback_without_embree_agrees(tiny):
+  mesh, _, _ = synthetic.build_scene(1, 'rural')
+  d = synthetic.ray_directions(tiny).reshape(-1, 3)[::7]
+  o = np.zeros_like(d)
+  if not synthetic.has_embree():
+    pytest.skip('embreex not installed: only the fallback is available')
+  a = synthetic.intersector(mesh, True).intersects_id(
+      o, d, multiple_hits=False, return_locations=True)
+  b = synthetic.intersector(mesh, False).intersects_id(
+      o, d, multiple_hits=False, return_locations=True)
+  da, db = np.full(len(d), np.inf), np.full(len(d), np.inf)
+  da[a[1]] = np.linalg.norm(a[2], axis=1)
+  db[b[1]] = np.linalg.norm(b[2], axis=1)
+  np.testing.assert_allclose(da, db, rtol=1e-4)
