@@ -64,3 +64,8 @@ def diff_augment(key, x, policy=POLICY):
       raise ValueError(f'unknown augmentation {name!r}; known: {sorted(FNS)}')
     x = FNS[name](k, x)
   return x
+
+
+def per_example(keys, x, policy=POLICY):
+  """diff_augment with one key per example (B keys for B scans)."""
+  return jax.vmap(lambda k, xi: diff_augment(k, xi[None], policy)[0])(keys, x)

@@ -46,3 +46,31 @@ def load_config(workdir: str) -> ml_collections.ConfigDict:
                             '`python -m dusty_jax.train --workdir DIR`')
   with open(path) as f:
     return ml_collections.ConfigDict(json.load(f))
+
+
+def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True):
+  """(GeneratorParams, config) of a training run: the EMA generator by default.
+
+  Everything ``sample`` and ``invert`` need: the generator's variables, the
+  run's sensor and model, and the dataset's angle table.
+  """
+  from dusty_jax import sensor as sensor_lib, trainer
+  from dusty_jax.data import arrays, pipeline
+  config = load_config(workdir)
+  sensor = sensor_lib.from_config(config.sensor)
+  setup = trainer.make_setup(config, sensor)
+  target = trainer.init_state(setup, jax.random.key(0))
+  mngr = manager(workdir, keep=config.keep_checkpoints)
+  step = mngr.latest_step() if step is None else step
+  if step is None:
+    raise FileNotFoundError(f'{workdir}: no checkpoint saved yet')
+  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
+  state = mngr.restore(step, args=ocp.args.StandardRestore(abstract))
+  try:
+    angles = arrays.load_angles(pipeline.dataset_dir(config, sensor, log=lambda m: None),
+                                sensor)
+  except FileNotFoundError:
+    angles = sensor.nominal_angles()
+  tolerance = config.get('tolerance', 0.0)
+  variables = state.ema_params if ema else state.g_params
+  return trainer.generator_bundle(setup, variables, angles, tolerance), config

@@ -32,7 +32,7 @@ def straight_through(logits, noise, tau: float = 1.0):
   z = (logits + noise) / tau
   soft = jax.nn.sigmoid(z)
   hard = (z >= 0).astype(soft.dtype)
-  return hard + soft - jax.lax.stop_gradient(soft)
+  return hard + (soft - jax.lax.stop_gradient(soft))  # exactly hard forward.
 
 
 def pixel_mask(key, logits, tau: float = 1.0):

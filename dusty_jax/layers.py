@@ -108,7 +108,8 @@ def conv_up(x, w, impl: str):
   for ry in range(2):
     row = []
     for rx in range(2):
-      taps = w[jnp.array(_UP_TAPS[ry])][:, jnp.array(_UP_TAPS[rx])]
+      taps = jnp.stack([jnp.stack([w[a, c] for c in _UP_TAPS[rx]])
+                        for a in _UP_TAPS[ry]])
       p = _patches(x[:, ry:ry + h + 1, rx:rx + wd + 1], 2, 2)
       row.append(_matmul(p, taps.reshape(-1, cout)))
     phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)

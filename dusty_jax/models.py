@@ -21,6 +21,7 @@ import math
 from typing import Any
 
 import flax.linen as nn
+from flax import struct
 import jax
 import jax.numpy as jnp
 
@@ -133,6 +134,14 @@ def render(model: str, raw, key, tau: float = 1.0, train: bool = True):
   return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
 
 
+def render_per_example(model: str, raw, keys, tau: float = 1.0,
+                       train: bool = True):
+  """:func:`render` with one key per example, so results do not depend on
+  how a batch is split across devices."""
+  out = jax.vmap(lambda r, k: render(model, r[None], k, tau, train))(raw, keys)
+  return jax.tree.map(lambda v: v[:, 0], out)
+
+
 def measurability(model: str, logit) -> Any:
   """Probability that each pixel returns a point (test-time, noise-free)."""
   if model == 'dusty1':
@@ -152,3 +161,25 @@ def build(model: str, sensor: SensorSpec, latent_dim: int = 512,
   g = Generator(sensor, MODELS[model], latent_dim, ch_base, ch_max, impl)
   d = Discriminator(sensor, ch_base, ch_max, impl)
   return g, d
+
+
+class GeneratorParams(struct.PyTreeNode):
+  """A trained generator as one pytree: what sample() and invert() take.
+
+  The Flax variables and the angle table are leaves; the model name, sensor
+  and network sizes ride along as static metadata, so the bundle can pass
+  through jit, vmap and grad like any parameter pytree.
+  """
+  variables: Any
+  angles: Any  # (2, H, W) per-pixel elevation, azimuth for back-projection.
+  model: str = struct.field(pytree_node=False, default='dusty1')
+  sensor: SensorSpec = struct.field(pytree_node=False, default=None)
+  latent_dim: int = struct.field(pytree_node=False, default=512)
+  ch_base: int = struct.field(pytree_node=False, default=64)
+  ch_max: int = struct.field(pytree_node=False, default=512)
+  tau: float = struct.field(pytree_node=False, default=1.0)
+  tolerance: float = struct.field(pytree_node=False, default=0.0)
+
+  def module(self, impl: str | None = None) -> Generator:
+    return build(self.model, self.sensor, self.latent_dim, self.ch_base,
+                 self.ch_max, impl)[0]

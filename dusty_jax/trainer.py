@@ -17,11 +17,15 @@ A step updates D, then G, then the EMA of G:
 from __future__ import annotations
 
 import functools
+import os
+import sys
+import time
 from typing import Any
 
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax import lax
 
@@ -60,7 +64,8 @@ class Setup:
 def make_setup(config, sensor: SensorSpec) -> Setup:
   g, d = models.build(config.model, sensor, config.latent_dim, config.ch_base,
                       config.ch_max, config.impl or None)
-  tx = lambda: optax.adam(config.lr, b1=config.beta1, b2=config.beta2, eps=1e-8)
+  tx = lambda: optax.adam(config.lr, b1=config.beta1, b2=config.beta2,
+                          eps=config.adam_eps)
   # EMA half-life in images, as the authors' smoothing_kimg.
   ema_decay = 0.5 ** (config.batch_size / max(config.ema_halflife_kimg * 1000, 1e-8))
   policy = tuple(p for p in config.augment.split(',') if p)
@@ -72,17 +77,19 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
 def init_state(setup: Setup, key) -> TrainState:
   kg, kd = jax.random.split(key)
   z = jnp.zeros((1, setup.latent_dim))
-  g_params = setup.generator.init(kg, z)
-  d_params = setup.discriminator.init(kd, jnp.zeros((1,) + setup.sensor.shape))
+  g_params = jax.jit(setup.generator.init)(kg, z)
+  d_params = jax.jit(setup.discriminator.init)(
+      kd, jnp.zeros((1,) + setup.sensor.shape))
   return TrainState(step=jnp.zeros((), jnp.int32), g_params=g_params,
                     d_params=d_params, g_opt=setup.g_tx.init(g_params),
                     d_opt=setup.d_tx.init(d_params),
                     ema_params=jax.tree.map(jnp.copy, g_params))
 
 
-def generate(setup: Setup, params, z, key, train=True):
+def generate(setup: Setup, params, z, keys, train=True):
+  """Generator forward and rendering; ``keys``: one per example."""
   raw = setup.generator.apply(params, z)
-  return models.render(setup.model, raw, key, setup.tau, train)
+  return models.render_per_example(setup.model, raw, keys, setup.tau, train)
 
 
 def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
@@ -91,17 +98,26 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   ``batch``: (b, H, W) real scans in normalised inverse depth. Must run
   where ``axis_name`` is bound (see parallel.py), even on one device.
   """
-  key = jax.random.fold_in(key, state.step)
-  key = jax.random.fold_in(key, lax.axis_index(axis_name))
-  kz, kmask, kar, kaf, kag = jax.random.split(key, 5)
+  # Randomness per example, from (key, step, global example index): the same
+  # whatever the number of devices, so 1- and N-device runs agree.
   b = batch.shape[0]
-  z = jax.random.normal(kz, (b, setup.latent_dim))
+  key = jax.random.fold_in(key, state.step)
+  ids = lax.axis_index(axis_name) * b + jnp.arange(b)
+  keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 5))(ids)
+  kz, kmask, kar, kaf, kag = (keys[:, j] for j in range(5))
+  z = jax.vmap(lambda k: jax.random.normal(k, (setup.latent_dim,)))(kz)
   d_apply = lambda p, x: setup.discriminator.apply(p, x)
-  aug = lambda k, x: augment.diff_augment(k, x, setup.policy)
+  aug = lambda k, x: augment.per_example(k, x, setup.policy)
+
+  # Differentiate with respect to per-device copies of the replicated
+  # parameters: the gradients are then this device's own, and pmean averages
+  # them. (Differentiating the replicated values directly would make
+  # shard_map psum the cotangents itself.)
+  local = lambda tree: lax.pcast(tree, (axis_name,), to='varying')
 
   # Generator forward once; its VJP serves the G update below.
   fake, g_vjp = jax.vjp(
-      lambda p: generate(setup, p, z, kmask)['scan'], state.g_params)
+      lambda p: generate(setup, p, z, kmask)['scan'], local(state.g_params))
 
   # --- Discriminator ---------------------------------------------------
   do_r1 = setup.r1_gamma > 0
@@ -115,20 +131,22 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
     r1 = jnp.zeros(())
     if do_r1:
       penalty = lambda: losses.r1_penalty(lambda x: d_apply(dp, x), real_aug)
-      r1 = penalty() if setup.r1_every == 1 else lax.cond(
-          r1_now, penalty, lambda: jnp.zeros(()))
+      skip = lambda: lax.pcast(jnp.zeros(()), (axis_name,), to='varying')
+      r1 = penalty() if setup.r1_every == 1 else lax.cond(r1_now, penalty, skip)
     total = adv + 0.5 * setup.r1_gamma * setup.r1_every * r1
     return total, {'loss_d': adv, 'r1': r1,
                    'd_real': real_logits.mean(), 'd_fake': fake_logits.mean()}
 
-  d_grads, d_metrics = jax.grad(d_objective, has_aux=True)(state.d_params)
+  d_grads, d_metrics = jax.grad(d_objective, has_aux=True)(local(state.d_params))
   d_grads = lax.pmean(d_grads, axis_name)
   d_updates, d_opt = setup.d_tx.update(d_grads, state.d_opt, state.d_params)
   d_params = optax.apply_updates(state.d_params, d_updates)
 
   # --- Generator, through the updated D --------------------------------
+  d_local = local(d_params)
+
   def g_objective(scan):
-    return losses.g_loss(d_apply(d_params, aug(kag, scan)))
+    return losses.g_loss(d_apply(d_local, aug(kag, scan)))
 
   loss_g, dscan = jax.value_and_grad(g_objective)(fake)
   (g_grads,) = g_vjp(dscan)
@@ -150,3 +168,114 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
 
 def step_fn(setup: Setup):
   return functools.partial(train_step, setup)
+
+
+# ----------------------------------------------------------------------------
+# The loop.
+# ----------------------------------------------------------------------------
+
+
+class NonFiniteLossError(FloatingPointError):
+  pass
+
+
+def generator_bundle(setup: Setup, variables, angles, tolerance=0.0):
+  return models.GeneratorParams(
+      variables=variables, angles=jnp.asarray(angles), model=setup.model,
+      sensor=setup.sensor, latent_dim=setup.latent_dim,
+      ch_base=setup.generator.ch_base, ch_max=setup.generator.ch_max,
+      tau=setup.tau, tolerance=tolerance)
+
+
+def _check_finite(step, records):
+  for s, m in records:
+    bad = {k: v for k, v in m.items() if not np.isfinite(v)}
+    if bad:
+      raise NonFiniteLossError(
+          f'non-finite training metrics at step {s}: {bad}; training stopped, '
+          'the last good checkpoint is kept (lower lr, or raise r1_gamma)')
+
+
+def _save_images(path, setup, params_bundle, z, key):
+  from dusty_jax import sampling, writers
+  out = jax.device_get(sampling.synthesize(params_bundle, z, key))
+  tiles = [
+      [writers.inv_depth_tile(x) for x in out['scan']],
+      [writers.inv_depth_tile(x) for x in out['inv_depth']],
+      [writers.prob_tile(p) for p in out['measurability']],
+  ]
+  # One column of (x, x_tilde, measurability) per sample, stacked down.
+  rows = [[t] for triple in zip(*tiles) for t in triple]
+  writers.save_grid(path, rows, scale=2)
+
+
+def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
+  """Trains from scratch or resumes from the latest checkpoint in ``workdir``."""
+  import tqdm
+  from dusty_jax import checkpoint, parallel, sensor as sensor_lib, writers
+  from dusty_jax.data import arrays, pipeline
+
+  sensor = sensor_lib.from_config(config.sensor)
+  mesh = parallel.data_mesh()
+  parallel.local_batch_size(config.batch_size, mesh)  # checks divisibility
+  is_main = jax.process_index() == 0
+  setup = make_setup(config, sensor)
+
+  data_dir = pipeline.dataset_dir(config, sensor, log=log)
+  depth = arrays.load_split(data_dir, 'train', sensor)
+  angles = arrays.load_angles(data_dir, sensor)
+  batches = pipeline.Batches(depth, sensor, config.batch_size, config.seed,
+                             jax.process_index(), jax.process_count())
+
+  if is_main:
+    checkpoint.save_config(workdir, config)
+  mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
+  root = jax.random.key(config.seed)
+  k_init, k_step, k_img = jax.random.split(root, 3)
+  state = init_state(setup, k_init)
+  state, restored = checkpoint.restore_latest(mngr, state)
+  start = 0 if restored is None else int(restored)
+  if restored is not None:
+    log(f'resumed from step {start} in {workdir}')
+  state = parallel.replicate(state, mesh)
+  step = parallel.data_parallel(step_fn(setup), mesh)
+  writer = writers.MetricWriter(workdir, enabled=is_main)
+  z_img = jax.random.normal(k_img, (config.num_images, config.latent_dim))
+
+  pending = []  # (step, device metrics) not yet fetched.
+  last_log = (time.time(), start)
+  bar = tqdm.tqdm(total=config.num_steps, initial=start, disable=not is_main,
+                  unit='step', dynamic_ncols=True, file=sys.stderr)
+  try:
+    for i in range(start, config.num_steps):
+      batch = parallel.shard_batch(batches(i), mesh)
+      state, metrics = step(state, batch, k_step)
+      pending.append((i + 1, metrics))
+      done = i + 1
+      log_now = done % config.log_every == 0 or done == config.num_steps
+      ckpt_now = done % config.checkpoint_every == 0 or done == config.num_steps
+      if log_now or ckpt_now:
+        records = [(s, {k: float(v) for k, v in parallel.to_host(m).items()})
+                   for s, m in pending]
+        pending = []
+        _check_finite(done, records)
+        now = time.time()
+        rate = (done - last_log[1]) * config.batch_size / max(now - last_log[0], 1e-9)
+        last_log = (now, done)
+        mean = {k: float(np.mean([m[k] for _, m in records])) for k in records[-1][1]}
+        mean['images_per_sec'] = rate
+        writer.write(done, mean)
+        bar.set_postfix(img_s=f'{rate:.1f}', d=f'{mean["loss_d"]:.3f}',
+                        g=f'{mean["loss_g"]:.3f}', drop=f'{mean["drop_rate"]:.2f}')
+      if ckpt_now:
+        checkpoint.save(mngr, done, state)
+      if is_main and (done % config.image_every == 0 or done == config.num_steps):
+        bundle = generator_bundle(setup, state.ema_params, angles)
+        _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
+                     setup, bundle, z_img, jax.random.key(0))
+      bar.update()
+  finally:
+    bar.close()
+    mngr.wait_until_finished()
+    writer.close()
+  return state

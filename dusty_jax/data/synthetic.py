@@ -380,7 +380,9 @@ def simulate(num: int, sensor: SensorSpec, seed: int = 0, progress: bool = True,
                   disable=not progress)
   if workers > 1 and num > 1:
     import multiprocessing
-    with multiprocessing.get_context('fork').Pool(workers) as pool:
+    # Forking a process that runs JAX's threads can deadlock: spawn then.
+    method = 'spawn' if 'jax' in sys.modules else 'fork'
+    with multiprocessing.get_context(method).Pool(workers) as pool:
       results = pool.imap(_render_arrays, jobs, chunksize=16)
       for i, r in enumerate(results):
         out[0][i], out[1][i], out[2][i] = r

@@ -1,0 +1,15 @@
+"""dusty_jax: DUSty LiDAR scan synthesis as a functional JAX/Flax library.
+
+Public API:
+  load_checkpoint(workdir) -> (GeneratorParams, config)
+  sample(params, key, num) -> dict of inverse depth, measurability, mask, scan, points
+  invert(params, scan, ...) -> latent search reconstruction
+"""
+
+from dusty_jax.checkpoint import load_checkpoint
+from dusty_jax.models import GeneratorParams
+from dusty_jax.sampling import sample
+from dusty_jax.sensor import SensorSpec, get_sensor
+
+__all__ = ['GeneratorParams', 'SensorSpec', 'get_sensor', 'load_checkpoint',
+           'sample']

@@ -1,0 +1,48 @@
+"""Shared defaults for every experiment; experiments/*.py override a few."""
+
+import ml_collections
+
+
+def default() -> ml_collections.ConfigDict:
+  c = ml_collections.ConfigDict()
+  c.seed = 0
+  c.model = 'dusty1'             # baseline | dusty1 | dusty2
+
+  c.sensor = ml_collections.ConfigDict()
+  c.sensor.preset = 'kitti'      # kitti (HDL-64E 64x256) | mpo (HDL-32E 32x256)
+  c.sensor.height = 0            # with preset '', a tiny sensor of this size
+  c.sensor.width = 0             # 0: the preset's width
+
+  c.data = ml_collections.ConfigDict()
+  c.data.name = ''               # kitti | mpo, for messages
+  c.data.dir = ''                # prepared arrays; '' = simulated scenes
+  c.data.num_synthetic = 2000    # simulated training scans (default data)
+  c.data.seed = 0
+  c.data.cache = ''              # '' = ~/.cache/dusty_jax
+
+  # Networks (the paper's Table I).
+  c.latent_dim = 512
+  c.ch_base = 64
+  c.ch_max = 512
+  c.impl = ''                    # '' = per backend: matmul on CPU, xla on GPU
+  c.tau = 1.0                    # Gumbel-sigmoid temperature
+
+  # Optimisation (the paper's Implementation Details).
+  c.batch_size = 32              # global, over all devices and hosts
+  c.lr = 0.002
+  c.beta1 = 0.0
+  c.beta2 = 0.99
+  c.adam_eps = 1e-8
+  c.r1_gamma = 1.0
+  c.r1_every = 16                # lazy R1 as in the authors' trainer; 1 = every step
+  c.ema_halflife_kimg = 10.0
+  c.augment = 'brightness,contrast,translation,cutout'
+  c.num_steps = 100_000
+
+  # Logging and checkpoints.
+  c.log_every = 50
+  c.image_every = 500
+  c.checkpoint_every = 1000
+  c.keep_checkpoints = 3
+  c.num_images = 8               # samples in each PNG grid
+  return c

@@ -1,0 +1,71 @@
+"""Training batches from prepared arrays, or from the simulated default."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from dusty_jax import projection
+from dusty_jax.data import arrays
+from dusty_jax.sensor import SensorSpec
+
+
+def default_cache() -> str:
+  return os.environ.get('DUSTY_JAX_CACHE',
+                        os.path.join(os.path.expanduser('~'), '.cache', 'dusty_jax'))
+
+
+def synthetic_dir(config, sensor: SensorSpec) -> str:
+  cache = config.data.cache or default_cache()
+  return os.path.join(cache, 'synthetic',
+                      f'{sensor.name}_{sensor.height}x{sensor.width}'
+                      f'_n{config.data.num_synthetic}_s{config.data.seed}')
+
+
+def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
+  """The prepared dataset a config names; simulates the default once, cached.
+
+  A config with no ``data.dir`` trains on simulated scans, generated on
+  first use and cached under ``data.cache`` (default ~/.cache/dusty_jax).
+  """
+  if config.data.dir:
+    directory = os.path.expanduser(config.data.dir)
+    if not os.path.isfile(arrays.split_path(directory, 'train')):
+      raise FileNotFoundError(
+          f'{directory}: no prepared training split (train.npy). Prepare the '
+          f'dataset first, e.g. `python -m dusty_jax.prepare --dataset '
+          f'{config.data.name or "kitti"} --root /path/to/raw --out {directory}`; '
+          'or train on simulated scans with --config experiments/synthetic.py, '
+          'which runs as is.')
+    return directory
+  directory = synthetic_dir(config, sensor)
+  if not os.path.isfile(os.path.join(directory, arrays.META)):
+    from dusty_jax.data import synthetic
+    log(f'simulating {config.data.num_synthetic} training scans into {directory} '
+        '(once; cached)')
+    synthetic.write_dataset(directory, sensor, config.data.num_synthetic,
+                            seed=config.data.seed,
+                            workers=max(os.cpu_count() or 1, 1))
+  return directory
+
+
+class Batches:
+  """Random batches of encoded scans, a pure function of (seed, step).
+
+  Resuming at step k gives the batch an uninterrupted run saw at step k.
+  Each process draws the whole global batch and keeps its own slice.
+  """
+
+  def __init__(self, depth: np.ndarray, sensor: SensorSpec, global_batch: int,
+               seed: int, process_index: int = 0, process_count: int = 1):
+    self.depth, self.sensor = depth, sensor
+    self.global_batch, self.seed = global_batch, seed
+    self.local = global_batch // process_count
+    self.offset = process_index * self.local
+
+  def __call__(self, step: int) -> np.ndarray:
+    rng = np.random.default_rng((self.seed, step))
+    idx = rng.integers(0, len(self.depth), self.global_batch)
+    idx = np.sort(idx[self.offset:self.offset + self.local])
+    return np.asarray(projection.encode(self.depth[idx], self.sensor))

@@ -1,0 +1,48 @@
+"""Sampling scans from a trained generator: ``dusty_jax.sample``."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from dusty_jax import models, projection
+
+
+def decode_scan(params: models.GeneratorParams, inv_depth, mask, scan):
+  """Measured depth and points (in metres) of generated scans."""
+  depth, valid = projection.decode(scan, params.sensor, params.tolerance)
+  points = projection.to_points(depth, params.angles)
+  return depth, valid, points
+
+
+def synthesize(params: models.GeneratorParams, z, key, train: bool = False,
+               impl: str | None = None):
+  """Generator output for latents ``z`` (B, latent_dim) as a dict.
+
+  Keys: ``inv_depth`` (x_tilde, complete), ``measurability`` (probability of
+  a return; all ones for the baseline), ``mask`` (sampled), ``scan`` (x),
+  ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
+  """
+  raw = params.module(impl).apply(params.variables, z)
+  out = models.render(params.model, raw, key, params.tau, train)
+  if params.model == 'baseline':
+    out['measurability'] = jnp.ones_like(out['inv_depth'])
+  else:
+    out['measurability'] = models.measurability(params.model, out['logit'])
+  depth, valid, points = decode_scan(params, out['inv_depth'], out['mask'],
+                                     out['scan'])
+  out.update(depth=depth, valid=valid, points=points)
+  return out
+
+
+@functools.partial(jax.jit, static_argnames=('num', 'impl'))
+def sample(params: models.GeneratorParams, key, num: int, impl: str | None = None):
+  """Draws ``num`` scans: z ~ N(0, I), test-time Gumbel sampling.
+
+  Returns the dict of :func:`synthesize`.
+  """
+  kz, kmask = jax.random.split(key)
+  z = jax.random.normal(kz, (num, params.latent_dim))
+  return synthesize(params, z, kmask, impl=impl)

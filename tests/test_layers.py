@@ -1,0 +1,115 @@
+"""Convolutions: matmul and XLA paths against a brute-force definition."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dusty_jax import layers, models
+from dusty_jax.sensor import get_sensor, tiny_sensor
+
+
+def _np_cylinder_pad(x):
+  x = np.concatenate([x[:, :, -1:], x, x[:, :, :1]], axis=2)
+  return np.pad(x, ((0, 0), (1, 1), (0, 0), (0, 0)), mode='reflect')
+
+
+def _np_conv_transpose(x, w, stride=2, pad=3):
+  """PyTorch ConvTranspose2d semantics, by scattering each input pixel."""
+  b, h, wd, cin = x.shape
+  k = w.shape[0]
+  full = np.zeros((b, (h - 1) * stride + k, (wd - 1) * stride + k, w.shape[3]))
+  for i in range(h):
+    for j in range(wd):
+      full[:, i * stride:i * stride + k, j * stride:j * stride + k] += np.einsum(
+          'bc,klco->bklo', x[:, i, j], w)
+  return full[:, pad:full.shape[1] - pad, pad:full.shape[2] - pad]
+
+
+def _np_conv(x, w, stride=2):
+  b, h, wd, _ = x.shape
+  k = w.shape[0]
+  ho, wo = (h - k) // stride + 1, (wd - k) // stride + 1
+  out = np.zeros((b, ho, wo, w.shape[3]))
+  for i in range(ho):
+    for j in range(wo):
+      patch = x[:, i * stride:i * stride + k, j * stride:j * stride + k]
+      out[:, i, j] = np.einsum('bklc,klco->bo', patch, w)
+  return out
+
+
+@pytest.fixture
+def data():
+  rng = np.random.default_rng(0)
+  return (rng.normal(size=(2, 4, 8, 3)).astype(np.float32),
+          rng.normal(size=(4, 4, 3, 5)).astype(np.float32))
+
+
+@pytest.mark.parametrize('impl', ['matmul', 'xla'])
+def test_conv_up_matches_brute_force(data, impl):
+  x, w = data
+  want = _np_conv_transpose(_np_cylinder_pad(x), w)
+  got = layers.conv_up(jnp.asarray(x), jnp.asarray(w), impl)
+  assert got.shape == (2, 8, 16, 5)
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize('impl', ['matmul', 'xla'])
+def test_conv_down_matches_brute_force(data, impl):
+  x, w = data
+  want = _np_conv(_np_cylinder_pad(x), w)
+  got = layers.conv_down(jnp.asarray(x), jnp.asarray(w), impl)
+  assert got.shape == (2, 2, 4, 5)
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_circular_shift_equivariance(data):
+  x, w = data
+  up = lambda v: layers.conv_up(v, w, 'matmul')
+  np.testing.assert_allclose(up(jnp.roll(x, 1, axis=2)), jnp.roll(up(x), 2, axis=2),
+                             rtol=1e-5, atol=1e-5)
+  down = lambda v: layers.conv_down(v, w, 'matmul')
+  x8 = np.concatenate([x, x], axis=2)
+  np.testing.assert_allclose(down(jnp.roll(x8, 2, axis=2)),
+                             jnp.roll(down(x8), 1, axis=2), rtol=1e-5, atol=1e-5)
+  blur = layers.blur_vh(jnp.asarray(x))
+  np.testing.assert_allclose(layers.blur_vh(jnp.roll(x, 3, axis=2)),
+                             jnp.roll(blur, 3, axis=2), rtol=1e-6)
+
+
+def test_impls_agree_including_r1_double_backward():
+  s = tiny_sensor(16, 64)
+  outs = {}
+  for impl in ('matmul', 'xla'):
+    g, d = models.build('dusty2', s, latent_dim=16, ch_base=4, ch_max=16, impl=impl)
+    z = jax.random.normal(jax.random.key(0), (2, 16))
+    gp = jax.jit(g.init)(jax.random.key(1), z)
+    x = jnp.tanh(jax.jit(g.apply)(gp, z)[..., 0])
+    dp = jax.jit(d.init)(jax.random.key(2), x)
+
+    def r1(dp):
+      grad = jax.grad(lambda x: d.apply(dp, x).sum())(x)
+      return jnp.sum(grad ** 2)
+    outs[impl] = (x, jax.jit(d.apply)(dp, x), jax.jit(jax.grad(r1))(dp))
+  for a, b in zip(jax.tree.leaves(outs['matmul']), jax.tree.leaves(outs['xla'])):
+    np.testing.assert_allclose(a, b, rtol=2e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize('preset, shape', [('kitti', (64, 256)), ('mpo', (32, 256))])
+def test_shapes_derive_from_sensor(preset, shape):
+  s = get_sensor(preset)
+  g, d = models.build('dusty1', s, latent_dim=8, ch_base=2, ch_max=4)
+  z = jnp.zeros((1, 8))
+  gp = jax.eval_shape(g.init, jax.random.key(0), z)
+  assert gp['params']['proj'].shape == (8, shape[0] // 16 * shape[1] // 16 * 4)
+  out = jax.eval_shape(g.apply, gp, z)
+  assert out.shape == (1,) + shape + (2,)
+  dp = jax.eval_shape(d.init, jax.random.key(0), jnp.zeros((1,) + shape))
+  assert dp['params']['out'].shape == (shape[0] // 16 * shape[1] // 16 * 4, 1)
+
+
+def test_bad_sensor_shape():
+  with pytest.raises(ValueError, match='multiples of 16'):
+    models.build('dusty1', tiny_sensor(24, 64))
+  with pytest.raises(ValueError, match="unknown model 'dusty3'"):
+    models.build('dusty3', tiny_sensor(16, 64))

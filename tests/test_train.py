@@ -1,0 +1,165 @@
+"""Training: data parallelism, multi-process, resume, NaN guard, CLI, API."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dusty_jax
+from dusty_jax import checkpoint, parallel, trainer, writers
+from train_helpers import run_steps, tiny_config
+
+HERE = os.path.dirname(__file__)
+
+
+def _assert_trees_close(a, b, rtol=1e-4, atol=1e-5):
+  la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+  assert len(la) == len(lb)
+  for x, y in zip(la, lb):
+    np.testing.assert_allclose(x, y, rtol=rtol, atol=atol)
+
+
+def assert_same_training(a, b):
+  """Same parameters up to float summation order."""
+  _assert_trees_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+@pytest.fixture(scope='module')
+def one_device_params():
+  assert len(jax.devices()) == 4, 'conftest forces 4 host devices'
+  return run_steps(2, devices=jax.devices()[:1])
+
+
+def test_one_and_four_devices_agree(one_device_params):
+  four = run_steps(2, devices=jax.devices())
+  assert_same_training(one_device_params, four)
+  # And training moved the parameters at all.
+  init = run_steps(0, devices=jax.devices()[:1])
+  moved = [np.abs(a - b).max() for a, b in zip(jax.tree.leaves(init['g']),
+                                              jax.tree.leaves(one_device_params['g']))]
+  assert max(moved) > 1e-3
+
+
+def test_two_processes_agree_with_one(one_device_params, tmp_path):
+  with socket.socket() as s:
+    s.bind(('127.0.0.1', 0))
+    port = s.getsockname()[1]
+  out = str(tmp_path / 'params.npz')
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+      [os.path.join(HERE, '..'), os.environ.get('PYTHONPATH', '')]))
+  env.pop('XLA_FLAGS', None)
+  procs = [subprocess.Popen([sys.executable, os.path.join(HERE, 'multihost_worker.py'),
+                             str(port), str(i), out], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+           for i in range(2)]
+  logs = [p.communicate(timeout=300)[0].decode() for p in procs]
+  assert all(p.returncode == 0 for p in procs), logs
+  got = np.load(out)
+  want = jax.tree.leaves(one_device_params)
+  assert len(got.files) == len(want)
+  assert_same_training([got[f'arr_{i}'] for i in range(len(want))], want)
+
+
+@pytest.fixture(scope='module')
+def smoke_run(tmp_path_factory):
+  """A full tiny run through train_and_evaluate (4 steps)."""
+  base = tmp_path_factory.mktemp('run')
+  config = tiny_config(num_steps=4, checkpoint_every=2, log_every=2,
+                       image_every=4, r1_every=2)
+  config.data.cache = str(base / 'cache')
+  config.data.num_synthetic = 16
+  workdir = str(base / 'work')
+  state = trainer.train_and_evaluate(config, workdir, log=lambda m: None)
+  return config, workdir, parallel.to_host(state)
+
+
+def test_resume_is_exact(smoke_run, tmp_path):
+  config, workdir, final = smoke_run
+  # A run stopped at step 2 and resumed reaches step 4 with the same params.
+  config = config.copy_and_resolve_references()
+  config.num_steps = 2
+  other = str(tmp_path / 'resumed')
+  trainer.train_and_evaluate(config, other, log=lambda m: None)
+  config.num_steps = 4
+  logs = []
+  resumed = trainer.train_and_evaluate(config, other, log=logs.append)
+  assert any('resumed from step 2' in l for l in logs)
+  _assert_trees_close(parallel.to_host(resumed), final, rtol=1e-6, atol=1e-7)
+
+
+def test_run_outputs(smoke_run):
+  config, workdir, _ = smoke_run
+  assert sorted(os.listdir(os.path.join(workdir, 'checkpoints'))) == ['2', '4']
+  assert os.path.isfile(os.path.join(workdir, 'images', 'step_0000004.png'))
+  lines = [json.loads(l) for l in open(os.path.join(workdir, 'metrics.jsonl'))]
+  assert [l['step'] for l in lines] == [2, 4]
+  assert all(np.isfinite(l['loss_d']) and l['images_per_sec'] > 0 for l in lines)
+  events = [f for f in os.listdir(workdir) if f.startswith('events.out.tfevents')]
+  records = writers.read_tfrecords(os.path.join(workdir, events[0]))
+  assert b'brain.Event:2' in records[0]
+  assert any(b'loss_d' in r for r in records[1:])
+
+
+def test_load_checkpoint_and_sample(smoke_run):
+  config, workdir, final = smoke_run
+  params, cfg = dusty_jax.load_checkpoint(workdir)
+  assert cfg.model == 'dusty1' and params.sensor.shape == (16, 64)
+  _assert_trees_close(params.variables, final.ema_params, rtol=0, atol=0)
+  out = dusty_jax.sample(params, jax.random.key(0), 3)
+  assert out['scan'].shape == out['inv_depth'].shape == (3, 16, 64)
+  assert out['points'].shape == (3, 16, 64, 3)
+  m = np.asarray(out['mask'])
+  assert set(np.unique(m).tolist()) <= {0.0, 1.0}
+  np.testing.assert_array_equal(np.asarray(out['scan'])[m == 0], -1.0)
+  np.testing.assert_allclose(np.asarray(out['scan'])[m == 1],
+                             np.asarray(out['inv_depth'])[m == 1])
+  depth = np.linalg.norm(np.asarray(out['points']), axis=-1)
+  np.testing.assert_allclose(depth, np.asarray(out['depth']), rtol=1e-5, atol=1e-5)
+  again = dusty_jax.sample(params, jax.random.key(0), 3)
+  np.testing.assert_array_equal(out['scan'], again['scan'])
+
+
+def test_nan_stops_training_keeping_last_good_checkpoint(smoke_run, tmp_path):
+  config, workdir, _ = smoke_run
+  config = config.copy_and_resolve_references()
+  other = str(tmp_path / 'nan')
+  config.num_steps = 2
+  trainer.train_and_evaluate(config, other, log=lambda m: None)
+  config.num_steps = 6
+  config.lr = float('nan')  # poisons every update from step 3 on.
+  with pytest.raises(trainer.NonFiniteLossError, match='non-finite training metrics'):
+    trainer.train_and_evaluate(config, other, log=lambda m: None)
+  assert sorted(os.listdir(os.path.join(other, 'checkpoints'))) == ['2']
+
+
+def test_missing_dataset_message(tmp_path):
+  config = tiny_config()
+  config.data.dir = str(tmp_path / 'nothing')
+  config.data.name = 'kitti'
+  with pytest.raises(FileNotFoundError, match=r'dusty_jax\.prepare.*synthetic\.py'):
+    trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
+
+
+def test_cli_overrides_and_bad_field(tmp_path):
+  env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
+  env.pop('XLA_FLAGS', None)
+  cmd = [sys.executable, '-m', 'dusty_jax.train',
+         '--config', os.path.join(HERE, '..', 'experiments', 'smoke.py'),
+         '--workdir', str(tmp_path / 'w')]
+  bad = subprocess.run(cmd + ['--config.batchsize=4'], env=env,
+                       capture_output=True, text=True)
+  assert bad.returncode != 0 and 'batchsize' in bad.stderr
+  ok = subprocess.run(cmd + ['--config.num_steps=2', '--config.log_every=1',
+                             '--config.data.num_synthetic=8'],
+                      env=env, capture_output=True, text=True, timeout=600)
+  assert ok.returncode == 0, ok.stderr[-3000:]
+  assert os.path.isdir(tmp_path / 'w' / 'checkpoints' / '2')
+  missing = subprocess.run(cmd + ['--config.data.dir=/nonexistent'], env=env,
+                           capture_output=True, text=True)
+  assert missing.returncode != 0 and 'dusty_jax.prepare' in missing.stderr

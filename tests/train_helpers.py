@@ -1,0 +1,46 @@
+"""A tiny deterministic training run shared by the parallelism tests."""
+
+import jax
+import numpy as np
+
+from dusty_jax import parallel, trainer
+from dusty_jax.sensor import tiny_sensor
+
+import importlib.util
+import os
+
+_SPEC = importlib.util.spec_from_file_location(
+    'smoke', os.path.join(os.path.dirname(__file__), '..', 'experiments', 'smoke.py'))
+_SMOKE = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(_SMOKE)
+
+
+def tiny_config(**overrides):
+  c = _SMOKE.get_config()
+  c.r1_every = 1
+  for k, v in overrides.items():
+    setattr(c, k, v)
+  return c
+
+
+def fixed_batches(config, sensor, num_steps):
+  rng = np.random.default_rng(123)
+  return [rng.uniform(-1, 1, (config.batch_size,) + sensor.shape).astype(np.float32)
+          for _ in range(num_steps)]
+
+
+def run_steps(num_steps=2, devices=None, config=None):
+  """Trains ``num_steps`` on fixed batches; returns the host params pytree."""
+  config = config or tiny_config()
+  sensor = tiny_sensor(config.sensor.height, config.sensor.width)
+  setup = trainer.make_setup(config, sensor)
+  mesh = parallel.data_mesh(devices)
+  step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+  state = parallel.replicate(trainer.init_state(setup, jax.random.key(0)), mesh)
+  local = parallel.local_batch_size(config.batch_size, mesh)
+  lo = jax.process_index() * local
+  for batch in fixed_batches(config, sensor, num_steps):
+    state, _ = step(state, parallel.shard_batch(batch[lo:lo + local], mesh),
+                    jax.random.key(1))
+  return parallel.to_host({'g': state.g_params, 'd': state.d_params,
+                           'ema': state.ema_params})
