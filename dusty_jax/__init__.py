@@ -7,9 +7,10 @@ Public API:
 """
 
 from dusty_jax.checkpoint import load_checkpoint
+from dusty_jax.inversion import invert
 from dusty_jax.models import GeneratorParams
 from dusty_jax.sampling import sample
 from dusty_jax.sensor import SensorSpec, get_sensor
 
-__all__ = ['GeneratorParams', 'SensorSpec', 'get_sensor', 'load_checkpoint',
-           'sample']
+__all__ = ['GeneratorParams', 'SensorSpec', 'get_sensor', 'invert',
+           'load_checkpoint', 'sample']

@@ -75,3 +75,18 @@ def random_depth(sensor: SensorSpec, seed=0, drop=0.2) -> np.ndarray:
   d = rng.uniform(1.5, 100.0, sensor.shape).astype(np.float32)
   d[rng.uniform(size=sensor.shape) < drop] = 0.0
   return d
+
+
+@pytest.fixture(scope='session')
+def smoke_run(tmp_path_factory):
+  """A full tiny DUSty-I run through train_and_evaluate (4 steps), shared."""
+  from dusty_jax import parallel, trainer
+  from train_helpers import tiny_config
+  base = tmp_path_factory.mktemp('run')
+  config = tiny_config(num_steps=4, checkpoint_every=2, log_every=2,
+                       image_every=4, r1_every=2)
+  config.data.cache = str(base / 'cache')
+  config.data.num_synthetic = 40  # 4 test scans for the evaluation CLI
+  workdir = str(base / 'work')
+  state = trainer.train_and_evaluate(config, workdir, log=lambda m: None)
+  return config, workdir, parallel.to_host(state)

@@ -66,19 +66,6 @@ def test_two_processes_agree_with_one(one_device_params, tmp_path):
   assert_same_training([got[f'arr_{i}'] for i in range(len(want))], want)
 
 
-@pytest.fixture(scope='module')
-def smoke_run(tmp_path_factory):
-  """A full tiny run through train_and_evaluate (4 steps)."""
-  base = tmp_path_factory.mktemp('run')
-  config = tiny_config(num_steps=4, checkpoint_every=2, log_every=2,
-                       image_every=4, r1_every=2)
-  config.data.cache = str(base / 'cache')
-  config.data.num_synthetic = 16
-  workdir = str(base / 'work')
-  state = trainer.train_and_evaluate(config, workdir, log=lambda m: None)
-  return config, workdir, parallel.to_host(state)
-
-
 def test_resume_is_exact(smoke_run, tmp_path):
   config, workdir, final = smoke_run
   # A run stopped at step 2 and resumed reaches step 4 with the same params.

@@ -1,0 +1,189 @@
+"""Reconstructs or restores scans with a trained generator (GAN inversion).
+
+    python -m dusty_jax.invert --workdir RUN --input FILE_OR_DIR \
+        [--corrupt drop:0.9|beams:8|noise:0.01] --out DIR
+
+Inputs: KITTI ``.bin`` files (unfolded with the run's sensor), or ``.npy``
+holding metric depth (H, W) or (N, H, W) (the prepared format). Writes per
+scan ``NAME_inv_depth.npy`` (complete x_tilde), ``NAME_measurability.npy``,
+``NAME_depth.npy`` (the re-rendered scan in metres), ``NAME.ply`` (its
+points) and ``NAME.png`` (target, corrupted input, x_tilde, measurability,
+re-rendered scan), plus ``metrics.json``.
+
+    python -m dusty_jax.invert --workdir RUN --split test --num 100 [--corrupt ...]
+
+evaluates over a prepared split instead and prints the layout of the
+paper's Table III.
+
+This module is also callable: ``dusty_jax.invert(params, scan)`` runs
+:func:`dusty_jax.inversion.invert` whichever of the two the name refers to.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import types
+
+import numpy as np
+
+from dusty_jax import inversion
+
+
+class _CallableModule(types.ModuleType):
+  def __call__(self, *args, **kwargs):
+    return inversion.invert(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
+
+TABLE_COLUMNS = (('cd', 'CD x1e4', 1e4), ('abs_rel', 'AbsRel', 1),
+                 ('sq_rel', 'SqRel', 1), ('rmse', 'RMSE', 1),
+                 ('rmse_log', 'RMSElog', 1), ('delta1', 'd<1.25 %', 100),
+                 ('delta2', 'd<1.25^2 %', 100), ('delta3', 'd<1.25^3 %', 100))
+
+
+def read_inputs(path: str, sensor):
+  """[(name, metric depth (H, W))] from a file or a directory of files."""
+  from dusty_jax.data import kitti
+  if os.path.isdir(path):
+    files = sorted(os.path.join(path, f) for f in os.listdir(path)
+                   if f.endswith(('.bin', '.npy')))
+    if not files:
+      raise FileNotFoundError(f'{path}: no .bin or .npy files')
+  elif os.path.isfile(path):
+    files = [path]
+  else:
+    raise FileNotFoundError(f'{path}: no such file or directory')
+  out = []
+  for f in files:
+    stem = os.path.splitext(os.path.basename(f))[0]
+    if f.endswith('.bin'):
+      depth, _ = kitti.load_scan(f, sensor)
+      out.append((stem, depth))
+      continue
+    arr = np.load(f, allow_pickle=False)
+    if arr.shape[-2:] != sensor.shape or arr.ndim not in (2, 3):
+      raise ValueError(f'{f}: expected metric depth of shape (H, W) or '
+                       f'(N, H, W) with H, W = {sensor.shape}, got {arr.shape}')
+    if arr.ndim == 2:
+      out.append((stem, arr))
+    else:
+      out += [(f'{stem}_{i:05d}', a) for i, a in enumerate(arr)]
+  return out
+
+
+def evaluate_batch(params, target_depth, result, angles):
+  """Depth errors of x_tilde and Chamfer distance, per scan (numpy dicts)."""
+  import jax.numpy as jnp
+  from dusty_jax import projection
+  from dusty_jax.metrics import chamfer, depth as depth_metrics
+  sensor = params.sensor
+  target_depth = np.asarray(target_depth, np.float32)
+  valid_t = np.asarray(projection.valid_depth(target_depth, sensor))
+  pred, _ = projection.decode(result['inv_depth'], sensor)
+  errs = {k: np.asarray(v) for k, v in
+          depth_metrics.depth_errors(pred, target_depth, valid_t).items()}
+  pts_t = np.asarray(projection.to_points(target_depth, angles)) / sensor.max_depth
+  pts_r = np.asarray(result['points']) / sensor.max_depth
+  valid_r = np.asarray(result['valid'])
+  cds = []
+  for i in range(len(target_depth)):
+    a, b = pts_t[i][valid_t[i]], pts_r[i][valid_r[i]]
+    cds.append(float(chamfer.chamfer(jnp.asarray(a), jnp.asarray(b)))
+               if len(a) and len(b) else float('nan'))
+  errs['cd'] = np.array(cds)
+  return errs
+
+
+def format_table(rows: dict) -> str:
+  """Rows {label: {metric: mean}} in the layout of the paper's Table III."""
+  head = f'{"":24s}' + ''.join(f'{name:>12s}' for _, name, _ in TABLE_COLUMNS)
+  lines = [head, '-' * len(head)]
+  for label, m in rows.items():
+    lines.append(f'{label:24s}' + ''.join(
+        f'{m[k] * s:12.3f}' for k, _, s in TABLE_COLUMNS))
+  return '\n'.join(lines)
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument('--workdir', required=True, help='training run directory')
+  p.add_argument('--input', help='.bin/.npy file or directory')
+  p.add_argument('--split', help='evaluate over this prepared split instead')
+  p.add_argument('--num', type=int, default=100, help='scans of --split')
+  p.add_argument('--corrupt', default='', help='drop:F, beams:K or noise:S')
+  p.add_argument('--out', default='inversion')
+  p.add_argument('--steps', type=int, default=1000)
+  p.add_argument('--batch', type=int, default=16)
+  p.add_argument('--seed', type=int, default=0)
+  a = p.parse_args(argv)
+  try:
+    run(a)
+  except (ValueError, FileNotFoundError) as e:
+    sys.exit(f'error: {e}')
+
+
+def run(a):
+  import jax
+  import tqdm
+  import trimesh
+  from dusty_jax import checkpoint, corrupt, projection, writers
+  from dusty_jax.data import arrays, pipeline
+
+  if bool(a.input) == bool(a.split):
+    raise ValueError('give exactly one of --input and --split')
+  if a.corrupt:
+    corrupt.parse(a.corrupt)
+  params, config = checkpoint.load_checkpoint(a.workdir)
+  sensor = params.sensor
+  angles = np.asarray(params.angles)
+  if a.input:
+    items = read_inputs(a.input, sensor)
+  else:
+    d = pipeline.dataset_dir(config, sensor, log=lambda m: None)
+    data = arrays.load_split(d, a.split, sensor)
+    items = [(f'{a.split}_{i:05d}', data[i]) for i in range(min(a.num, len(data)))]
+  os.makedirs(a.out, exist_ok=True)
+  key = jax.random.key(a.seed)
+  per_scan = []
+  for start in tqdm.trange(0, len(items), a.batch, desc='inverting', unit='batch',
+                           file=sys.stderr):
+    chunk = items[start:start + a.batch]
+    depth = np.stack([np.nan_to_num(d, nan=0.0, posinf=0.0) for _, d in chunk])
+    clean = projection.encode(depth, sensor)
+    k = jax.random.fold_in(key, start)
+    target = corrupt.apply(a.corrupt, k, clean, sensor) if a.corrupt else clean
+    keys = jax.vmap(lambda i: jax.random.fold_in(k, i))(jax.numpy.arange(len(chunk)))
+    res = jax.device_get(inversion.invert(params, target, key=keys,
+                                          num_steps=a.steps))
+    errs = evaluate_batch(params, depth, res, angles)
+    for i, (name, _) in enumerate(chunk):
+      per_scan.append({'name': name, **{m: float(v[i]) for m, v in errs.items()},
+                       'loss': float(res['loss'][i])})
+      if a.input:
+        np.save(os.path.join(a.out, f'{name}_inv_depth.npy'), res['inv_depth'][i])
+        np.save(os.path.join(a.out, f'{name}_measurability.npy'),
+                res['measurability'][i])
+        np.save(os.path.join(a.out, f'{name}_depth.npy'), res['depth'][i])
+        pts = res['points'][i][res['valid'][i]]
+        trimesh.PointCloud(pts).export(os.path.join(a.out, f'{name}.ply'))
+        tiles = [[writers.inv_depth_tile(clean[i])],
+                 [writers.inv_depth_tile(target[i])],
+                 [writers.inv_depth_tile(res['inv_depth'][i])],
+                 [writers.prob_tile(res['measurability'][i])],
+                 [writers.inv_depth_tile(res['scan'][i])]]
+        writers.save_grid(os.path.join(a.out, f'{name}.png'), tiles)
+  keys = [k for k, _, _ in TABLE_COLUMNS]
+  mean = {k: float(np.nanmean([r[k] for r in per_scan])) for k in keys}
+  label = f'{config.model}' + (f' ({a.corrupt})' if a.corrupt else '')
+  with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
+    json.dump({'mean': mean, 'per_scan': per_scan, 'corrupt': a.corrupt,
+               'steps': a.steps}, f, indent=2)
+  print(format_table({label: mean}))
+
+
+if __name__ == '__main__':
+  main()

@@ -1,0 +1,153 @@
+"""GAN inversion: independence, restoration, edge cases, corruptions, CLI."""
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dusty_jax
+from dusty_jax import corrupt, inversion, projection, sampling
+from dusty_jax.projection import ALPHA
+
+HERE = os.path.dirname(__file__)
+
+
+@pytest.fixture(scope='module')
+def gen(smoke_run):
+  params, _ = dusty_jax.load_checkpoint(smoke_run[1])
+  return params
+
+
+def _targets(params, n=3, seed=5):
+  """Scans the generator can represent exactly: its own samples."""
+  out = sampling.sample(params, jax.random.key(seed), n)
+  return out['scan'], out['inv_depth']
+
+
+def test_search_reduces_loss(gen):
+  scans, _ = _targets(gen)
+  short = inversion.invert(gen, scans, num_steps=2)
+  long = inversion.invert(gen, scans, num_steps=60)
+  assert (np.asarray(long['loss']) < np.asarray(short['loss'])).all()
+  # Latents stay on the sphere of radius sqrt(d).
+  np.testing.assert_allclose(np.linalg.norm(long['latent'], axis=-1),
+                             np.sqrt(gen.latent_dim), rtol=1e-5)
+
+
+def test_alone_and_in_batch_agree(gen):
+  scans, _ = _targets(gen)
+  keys = jax.random.split(jax.random.key(1), 3)
+  batch = inversion.invert(gen, scans, key=keys, num_steps=20)
+  alone = inversion.invert(gen, scans[1], key=keys[1:2], num_steps=20)
+  np.testing.assert_allclose(alone['latent'], batch['latent'][1], rtol=1e-4, atol=1e-4)
+  np.testing.assert_allclose(alone['loss'], batch['loss'][1], rtol=1e-3, atol=1e-6)
+  assert alone['inv_depth'].shape == gen.sensor.shape
+
+
+def test_restoring_90_percent_drop_beats_corrupted_input(gen):
+  scans, _ = _targets(gen, n=2, seed=9)
+  clean = np.asarray(scans)
+  bad = corrupt.drop(jax.random.key(2), scans, 0.9)
+  res = inversion.invert(gen, bad, num_steps=150)
+  valid = clean > ALPHA
+  # The corrupted input knows nothing at 90% of the clean valid pixels
+  # (error vs alpha there); the reconstruction fills them in.
+  err_input = np.abs(np.asarray(bad) - clean)[valid].mean()
+  err_recon = np.abs(np.asarray(res['inv_depth']) - clean)[valid].mean()
+  assert err_recon < err_input
+
+
+def test_edge_cases(gen):
+  h, w = gen.sensor.shape
+  empty = jnp.full((h, w), ALPHA)
+  with pytest.warns(UserWarning, match=r'scans \[0\] have no valid pixel'):
+    out = inversion.invert(gen, empty, num_steps=5)
+  assert all(np.isfinite(np.asarray(v)).all() for k, v in out.items()
+             if k not in ('latent',) and np.asarray(v).dtype.kind == 'f')
+  assert float(out['loss']) == 0
+  nan_scan = jnp.full((1, h, w), 0.3).at[0, 0, :5].set(jnp.nan).at[0, 1, :5].set(jnp.inf)
+  res = inversion.invert(gen, nan_scan, num_steps=5)
+  assert np.isfinite(np.asarray(res['loss'])).all()
+  mask = inversion.target_mask(nan_scan)
+  assert not bool(mask[0, 0, :5].any()) and not bool(mask[0, 1, :5].any())
+  with pytest.raises(ValueError, match='does not match'):
+    inversion.invert(gen, jnp.zeros((4, 8)))
+
+
+def test_all_models_invert(tiny, tmp_path):
+  from dusty_jax import models, trainer
+  from train_helpers import tiny_config
+  for name in ('baseline', 'dusty2'):
+    setup = trainer.make_setup(tiny_config(model=name), tiny)
+    state = trainer.init_state(setup, jax.random.key(0))
+    params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles())
+    scans, _ = _targets(params, n=2)
+    out = inversion.invert(params, scans, num_steps=3)
+    assert out['inv_depth'].shape == (2,) + tiny.shape
+    assert np.isfinite(np.asarray(out['loss'])).all()
+
+
+def test_corruptions(tiny):
+  d = np.random.default_rng(0).uniform(2, 80, (4,) + tiny.shape).astype(np.float32)
+  x = projection.encode(d, tiny)
+  dropped = corrupt.apply('drop:0.9', jax.random.key(0), x, tiny)
+  kept = float(np.mean(np.asarray(dropped) > ALPHA))
+  assert 0.06 < kept < 0.14
+  beams = np.asarray(corrupt.apply('beams:4', None, x, tiny))
+  assert (beams[:, 1::4] == ALPHA).all() and (beams[:, ::4] == np.asarray(x)[:, ::4]).all()
+  noisy = corrupt.apply('noise:0.01', jax.random.key(1), x, tiny)
+  nd, nv = projection.decode(noisy, tiny)
+  resid = (np.asarray(nd) - d)[np.asarray(nv)]
+  assert abs(resid.std() - 0.01 * (120 - 0.9)) < 0.1
+  same = corrupt.apply('drop:0.5', jax.random.key(3), x, tiny)
+  np.testing.assert_array_equal(same, corrupt.apply('drop:0.5', jax.random.key(3), x, tiny))
+  for bad, msg in [('drop:1.5', 'must be in'), ('beams:2.5', 'whole number'),
+                   ('blur:1', 'unknown corruption'), ('drop', 'NAME:VALUE')]:
+    with pytest.raises(ValueError, match=msg):
+      corrupt.parse(bad)
+
+
+def test_invert_is_callable_after_cli_import(gen):
+  import importlib
+  importlib.import_module('dusty_jax.invert')
+  scans, _ = _targets(gen, n=1)
+  out = dusty_jax.invert(gen, scans, num_steps=2)
+  assert out['latent'].shape == (1, gen.latent_dim)
+
+
+def test_cli_on_files_and_split(smoke_run, tmp_path):
+  from dusty_jax.data import kitti, synthetic
+  config, workdir, _ = smoke_run
+  params, _ = dusty_jax.load_checkpoint(workdir)
+  inp = tmp_path / 'in'
+  inp.mkdir()
+  scan = synthetic.render_scan(1, params.sensor)
+  kitti.write_bin(str(inp / 'a.bin'), synthetic.to_sensor_order(scan.depth, params.sensor))
+  np.save(inp / 'b.npy', np.stack([scan.depth, scan.depth]))
+  env = dict(os.environ)
+  env.pop('XLA_FLAGS', None)
+  out = tmp_path / 'out'
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+                      '--input', str(inp), '--corrupt', 'drop:0.5', '--out', str(out),
+                      '--steps', '10'], env=env, capture_output=True, text=True,
+                     timeout=600)
+  assert r.returncode == 0, r.stderr[-3000:]
+  for stem in ('a', 'b_00000', 'b_00001'):
+    for suffix in ('_inv_depth.npy', '_measurability.npy', '_depth.npy', '.ply', '.png'):
+      assert (out / f'{stem}{suffix}').is_file(), f'{stem}{suffix}'
+  m = json.load(open(out / 'metrics.json'))
+  assert len(m['per_scan']) == 3 and 'AbsRel' in r.stdout and 'CD x1e4' in r.stdout
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+                      '--split', 'val', '--num', '2', '--steps', '5', '--out', str(out / 's')],
+                     env=env, capture_output=True, text=True, timeout=600)
+  assert r.returncode == 0, r.stderr[-3000:]
+  bad = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+                        '--input', str(tmp_path / 'missing.bin')], env=env,
+                       capture_output=True, text=True)
+  assert bad.returncode != 0 and 'missing.bin: no such file' in bad.stderr

@@ -1,0 +1,196 @@
+"""Evaluation metrics against brute-force numpy/scipy computations."""
+
+import numpy as np
+import pytest
+import scipy.ndimage
+from scipy.spatial import cKDTree
+
+from dusty_jax import projection
+from dusty_jax.metrics import chamfer, clouds, depth, point_sets, swd
+
+
+def _cloud_sets(n, m, p, seed=0, shift=0.0):
+  rng = np.random.default_rng(seed)
+  a = rng.normal(0, 0.2, (n, p, 3)).astype(np.float32)
+  b = (rng.normal(0, 0.2, (m, p, 3)) + shift).astype(np.float32)
+  return a, b
+
+
+def _cd_ref(a, b):
+  d_ab, _ = cKDTree(b).query(a)
+  d_ba, _ = cKDTree(a).query(b)
+  return np.mean(d_ab ** 2) + np.mean(d_ba ** 2)
+
+
+def test_chamfer_matrix_matches_kdtree():
+  a, b = _cloud_sets(5, 7, 64)
+  got = chamfer.pairwise(a, b, tile=3)
+  want = np.array([[_cd_ref(x, y) for y in b] for x in a])
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7)
+  sym = chamfer.pairwise(a, tile=2)
+  want_sym = np.array([[_cd_ref(x, y) for y in a] for x in a])
+  np.testing.assert_allclose(sym, want_sym, rtol=1e-4, atol=1e-6)
+  np.testing.assert_array_equal(sym, sym.T)
+
+
+def test_chamfer_invariant_to_point_and_cloud_order():
+  a, b = _cloud_sets(4, 3, 50, seed=1)
+  rng = np.random.default_rng(2)
+  base = chamfer.pairwise(a, b, tile=2)
+  a2 = a[:, rng.permutation(50)]
+  perm = rng.permutation(3)
+  np.testing.assert_allclose(chamfer.pairwise(a2, b[perm], tile=2), base[:, perm],
+                             rtol=1e-5)
+
+
+def test_chamfer_extremes():
+  one = np.zeros((1, 1, 3), np.float32)
+  dup = np.zeros((1, 10, 3), np.float32)
+  assert chamfer.pairwise(one, dup)[0, 0] == 0
+  assert float(chamfer.chamfer(dup[0], dup[0])) == 0
+  far = np.full((1, 2, 3), 1.0, np.float32)
+  np.testing.assert_allclose(chamfer.pairwise(one, far)[0, 0], 6.0, rtol=1e-6)
+
+
+def _fps_ref(points, valid, k):
+  idx = [int(np.flatnonzero(valid)[0])]
+  dist = np.where(valid, np.inf, -np.inf)
+  dist[idx[0]] = 0
+  for _ in range(k - 1):
+    dist = np.minimum(dist, ((points - points[idx[-1]]) ** 2).sum(-1))
+    idx.append(int(np.argmax(dist)))
+  return np.array(idx)
+
+
+def test_fps_matches_reference_and_excludes_drops():
+  rng = np.random.default_rng(3)
+  pts = rng.normal(size=(3, 300, 3)).astype(np.float32)
+  valid = rng.uniform(size=(3, 300)) > 0.3
+  got = np.asarray(clouds.farthest_point_indices(pts, valid, 32))
+  for i in range(3):
+    np.testing.assert_array_equal(got[i], _fps_ref(pts[i], valid[i], 32))
+    assert valid[i][got[i]].all()
+    assert len(set(got[i].tolist())) == 32
+
+
+def test_fps_few_points_and_empty():
+  pts = np.random.default_rng(4).normal(size=(2, 50, 3)).astype(np.float32)
+  valid = np.zeros((2, 50), bool)
+  valid[0, [5, 9, 30]] = True
+  valid[1, :] = True
+  only_second = valid.copy()
+  only_second[0] = False
+  with pytest.raises(ValueError, match=r'clouds \[0\] have no valid point'):
+    clouds.farthest_point_sample(pts, only_second, 4)
+  out = np.asarray(clouds.farthest_point_sample(pts, valid, 8))
+  assert set(map(tuple, out[0].tolist())) == set(map(tuple, pts[0, [5, 9, 30]].tolist()))
+
+
+def test_mmd_cov_and_1nna_brute_force():
+  rng = np.random.default_rng(5)
+  d_sr = rng.uniform(size=(6, 4))
+  mmd, cov = point_sets.mmd_cov(d_sr)
+  assert mmd == pytest.approx(np.mean([min(d_sr[:, j]) for j in range(4)]))
+  assert cov == pytest.approx(len({int(np.argmin(r)) for r in d_sr}) / 4)
+  a, b = _cloud_sets(6, 5, 40, seed=6)
+  d_rr, d_rs, d_ss = chamfer.pairwise(a), chamfer.pairwise(a, b), chamfer.pairwise(b)
+  union = np.concatenate([a, b])
+  lab = np.array([1] * 6 + [0] * 5)
+  correct = 0
+  for i in range(11):
+    d = [(_cd_ref(union[i], union[j]), j) for j in range(11) if j != i]
+    correct += lab[min(d)[1]] == lab[i]
+  assert point_sets.one_nna(d_rr, d_rs, d_ss) == pytest.approx(correct / 11)
+
+
+def test_identical_and_separated_sets():
+  a, b = _cloud_sets(6, 6, 40, seed=7, shift=3.0)
+  d_aa = chamfer.pairwise(a)
+  mmd, cov = point_sets.mmd_cov(d_aa)
+  # Zero up to the rounding of the |x|^2 - 2 x.y + |y|^2 expansion.
+  assert 0 <= mmd < 1e-7 and cov == 1.0
+  assert np.abs(np.diag(d_aa)).max() < 1e-7
+  assert point_sets.one_nna(d_aa, chamfer.pairwise(a, b), chamfer.pairwise(b)) == 1.0
+
+
+def _jsd_ref(sets, res=28):
+  ax = np.arange(res) / (res - 1) - 0.5
+  grid = np.stack(np.meshgrid(ax, ax, ax, indexing='ij'), -1).reshape(-1, 3)
+  grid = grid[np.linalg.norm(grid, axis=1) <= 0.5]
+  tree = cKDTree(grid)
+  counts = []
+  for s in sets:
+    _, idx = tree.query(s.reshape(-1, 3) * 0.5)
+    counts.append(np.bincount(idx, minlength=len(grid)).astype(float))
+  p, q = (c / c.sum() for c in counts)
+  h = lambda v: -np.sum(v[v > 0] * np.log2(v[v > 0]))
+  return h((p + q) / 2) - (h(p) + h(q)) / 2
+
+
+def test_jsd_matches_nearest_grid_reference():
+  rng = np.random.default_rng(8)
+  # Spread over and beyond the sphere so the boundary search is exercised.
+  a = rng.uniform(-1.3, 1.3, (4, 500, 3)).astype(np.float32)
+  b = rng.normal(0, 0.4, (3, 500, 3)).astype(np.float32)
+  assert point_sets.jsd(a, b) == pytest.approx(_jsd_ref([a, b]), rel=1e-5)
+  assert point_sets.jsd(a, a[::-1]) == pytest.approx(0.0, abs=1e-12)
+  counts = np.asarray(point_sets.occupancy(a))
+  assert counts.sum() == a.shape[0] * a.shape[1]
+
+
+def test_swd_pyramid_matches_scipy_mirror():
+  rng = np.random.default_rng(9)
+  x = rng.normal(size=(2, 16, 32)).astype(np.float32)
+  k = np.outer([1, 4, 6, 4, 1], [1, 4, 6, 4, 1]) / 256.0
+  want = scipy.ndimage.convolve(x, k[None], mode='mirror')[:, ::2, ::2]
+  np.testing.assert_allclose(swd.pyr_down(x), want, rtol=1e-5, atol=1e-6)
+  up = np.zeros((2, 16, 32), np.float32)
+  up[:, ::2, ::2] = want
+  want_up = scipy.ndimage.convolve(up, 4 * k[None], mode='mirror')
+  np.testing.assert_allclose(swd.pyr_up(want), want_up, rtol=1e-5, atol=1e-6)
+
+
+def test_swd_properties():
+  import jax
+  rng = np.random.default_rng(10)
+  a = rng.normal(size=(16, 32, 64)).astype(np.float32)
+  b = rng.normal(size=(16, 32, 64)).astype(np.float32)
+  c = scipy.ndimage.gaussian_filter(b, (0, 2, 2)).astype(np.float32)
+  key = jax.random.key(0)
+  same = swd.swd(key, a, b, per_image=64)
+  diff = swd.swd(key, a, c, per_image=64)
+  assert set(same) == {'swd_32', 'swd_16', 'swd_mean'}
+  # Descriptors are normalised per set, so only structure counts: still clear.
+  assert diff['swd_mean'] > 2 * same['swd_mean']
+  with pytest.raises(ValueError, match='same number and shape'):
+    swd.swd(key, a, b[:3])
+
+
+def test_depth_errors_against_numpy():
+  rng = np.random.default_rng(11)
+  t = rng.uniform(1, 80, (2, 8, 16)).astype(np.float32)
+  p = (t * rng.uniform(0.7, 1.4, t.shape)).astype(np.float32)
+  m = rng.uniform(size=t.shape) > 0.3
+  m[1] = False
+  got = {k: np.asarray(v) for k, v in depth.depth_errors(p, t, m).items()}
+  tt, pp = t[0][m[0]], p[0][m[0]]
+  r = np.maximum(pp / tt, tt / pp)
+  want = {'abs_rel': np.mean(np.abs(pp - tt) / tt), 'sq_rel': np.mean((pp - tt) ** 2 / tt),
+          'rmse': np.sqrt(np.mean((pp - tt) ** 2)),
+          'rmse_log': np.sqrt(np.mean((np.log(pp) - np.log(tt)) ** 2)),
+          'delta1': np.mean(r < 1.25), 'delta2': np.mean(r < 1.25 ** 2),
+          'delta3': np.mean(r < 1.25 ** 3)}
+  for k, v in want.items():
+    assert got[k][0] == pytest.approx(v, rel=1e-5)
+    assert np.isnan(got[k][1])
+  assert got['count'].tolist() == [m[0].sum(), 0]
+
+
+def test_scans_to_clouds_units(tiny):
+  d = np.full((1,) + tiny.shape, 60.0, np.float32)
+  d[0, 0, 0] = 0
+  pts, valid = clouds.scans_to_clouds(projection.encode(d, tiny),
+                                      tiny.nominal_angles(), tiny)
+  norms = np.linalg.norm(np.asarray(pts), axis=-1)
+  np.testing.assert_allclose(norms[np.asarray(valid)], 0.5, rtol=1e-4)
+  assert not bool(valid[0, 0])
