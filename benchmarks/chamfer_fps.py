@@ -35,9 +35,9 @@ def main():
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument('--points', type=int, default=2048)
   p.add_argument('--clouds', type=int, default=64)
-  p.add_argument('--tile', type=int, default=16)
+  p.add_argument('--tile', type=int, default=8)
   p.add_argument('--repeats', type=int, default=5)
-  p.add_argument('--fps-batch', type=int, default=16)
+  p.add_argument('--fps-batch', type=int, default=64)
   p.add_argument('--out', default=os.path.join(os.path.dirname(__file__), 'results',
                                                'chamfer_fps.json'))
   a = p.parse_args()

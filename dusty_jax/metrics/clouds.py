@@ -32,28 +32,51 @@ def scans_to_clouds(scans, angles, sensor: SensorSpec, tolerance: float = 0.0):
   return pts.reshape(b, -1, 3), valid.reshape(b, -1)
 
 
-def _fps_one(points, valid, k: int):
-  n = points.shape[0]
-  start = jnp.argmax(valid)
-  dist = jnp.where(valid, jnp.inf, -jnp.inf)
-
-  def body(i, carry):
-    idx, dist = carry
-    last = points[idx[i - 1]]
-    d = jnp.sum(jnp.square(points - last), axis=-1)
-    dist = jnp.minimum(dist, d)
-    return idx.at[i].set(jnp.argmax(dist).astype(jnp.int32)), dist
-
-  idx = jnp.zeros((k,), jnp.int32).at[0].set(start.astype(jnp.int32))
-  dist = dist.at[start].set(0.0)
-  idx, _ = jax.lax.fori_loop(1, k, body, (idx, dist))
-  return idx
+FPS_CHUNK = 64   # clouds sampled together (vectorised across clouds).
+FPS_UNROLL = 4
 
 
 @functools.partial(jax.jit, static_argnames='k')
-def farthest_point_indices(points, valid, k: int):
+def _fps_chunk(points, valid, k: int):
+  """(B, N, 3), (B, N) -> (B, k): clouds on the minor axis, so every step's
+  update and both reductions vectorise across clouds. Ties go to the lowest
+  index (the first maximum)."""
+  b, n = valid.shape
+  x, y, z = (points[..., c].T for c in range(3))  # (N, B) each
+  v = valid.T
+  iota = jnp.arange(n, dtype=jnp.int32)[:, None]
+  cols = jnp.arange(b)
+  start = jnp.min(jnp.where(v, iota, n), axis=0).astype(jnp.int32)
+  start = jnp.minimum(start, n - 1)
+  dist = jnp.where(v, jnp.inf, -jnp.inf).at[start, cols].set(0.0)
+
+  def body(i, carry):
+    idx, dist, last = carry
+    d = (jnp.square(x - x[last, cols]) + jnp.square(y - y[last, cols])
+         + jnp.square(z - z[last, cols]))
+    dist = jnp.minimum(dist, d)
+    top = jnp.max(dist, axis=0)
+    nxt = jnp.min(jnp.where(dist == top, iota, n), axis=0).astype(jnp.int32)
+    return idx.at[i].set(nxt), dist, nxt
+
+  idx = jnp.zeros((k, b), jnp.int32).at[0].set(start)
+  idx, _, _ = jax.lax.fori_loop(1, k, body, (idx, dist, start), unroll=FPS_UNROLL)
+  return idx.T
+
+
+def farthest_point_indices(points, valid, k: int, chunk: int = FPS_CHUNK):
   """(B, N, 3), (B, N) -> (B, k) indices of farthest point samples."""
-  return jax.vmap(lambda p, v: _fps_one(p, v, k))(points, valid)
+  points = np.asarray(points, np.float32)
+  valid = np.asarray(valid, bool)
+  out = []
+  for i in range(0, len(points), chunk):
+    p, v = points[i:i + chunk], valid[i:i + chunk]
+    m = len(p)
+    if m < chunk and len(points) > chunk:  # keep one compiled shape
+      p = np.concatenate([p, np.repeat(p[-1:], chunk - m, 0)])
+      v = np.concatenate([v, np.repeat(v[-1:], chunk - m, 0)])
+    out.append(np.asarray(_fps_chunk(p, v, k))[:m])
+  return np.concatenate(out) if out else np.zeros((0, k), np.int32)
 
 
 def farthest_point_sample(points, valid, k: int):
@@ -64,4 +87,4 @@ def farthest_point_sample(points, valid, k: int):
     raise ValueError(f'clouds {empty[:10].tolist()} have no valid point to '
                      'sample (every pixel dropped)')
   idx = farthest_point_indices(points, valid, k)
-  return jnp.take_along_axis(points, idx[..., None], axis=1)
+  return jnp.take_along_axis(points, jnp.asarray(idx)[..., None], axis=1)
