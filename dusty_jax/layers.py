@@ -84,6 +84,9 @@ def conv_down(x, w, impl: str):
   return _matmul(_patches(space_to_depth(x), 2, 2), w_s2d)
 
 
+# conv_up uses col2im when Cout * COL2IM_RATIO <= Cin, im2col otherwise.
+COL2IM_RATIO = 8
+
 # For output phase r of the stride-2 transposed conv (padding 3 after a
 # 1-pixel pad), the two input taps at offsets r, r+1 use kernel rows:
 _UP_TAPS = ((3, 1), (2, 0))
@@ -104,14 +107,39 @@ def conv_up(x, w, impl: str):
     return lax.conv_general_dilated(
         x, w[::-1, ::-1], (1, 1), ((0, 0), (0, 0)), lhs_dilation=(2, 2),
         dimension_numbers=('NHWC', 'HWIO', 'NHWC'))[:, :2 * h, :2 * wd]
+  if cout * COL2IM_RATIO > w.shape[2]:
+    # im2col: per output phase, 2x2 patches of the padded input (4 * Cin)
+    # times the phase's taps. Forward and backward are plain matmuls.
+    phases = []
+    for ry in range(2):
+      row = []
+      for rx in range(2):
+        taps = jnp.stack([jnp.stack([w[a, c] for c in _UP_TAPS[rx]])
+                          for a in _UP_TAPS[ry]])
+        p = _patches(x[:, ry:ry + h + 1, rx:rx + wd + 1], 2, 2)
+        row.append(_matmul(p, taps.reshape(-1, cout)))
+      phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
+    y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
+    return y.reshape(b, 2 * h, 2 * wd, cout)
+  # col2im, for few output channels (the generator's head): every input
+  # pixel's contribution to all 16 taps in one matmul (Cin -> 16 * Cout,
+  # far smaller than 16 * Cin of patches), then each output phase adds four
+  # shifted slices. The cylinder pad commutes with the per-pixel matmul, so
+  # it is applied to the product. (For wide outputs XLA's backward of the
+  # slices costs more than the patches save.)
+  x = x[:, 1:-1, 1:-1]
+  z = _matmul(x, w.transpose(2, 0, 1, 3).reshape(w.shape[2], 16 * cout))
+  z = cylinder_pad(z, 1, 1, 1, 1).reshape(b, hp, wp, 4, 4, cout)
   phases = []
   for ry in range(2):
     row = []
     for rx in range(2):
-      taps = jnp.stack([jnp.stack([w[a, c] for c in _UP_TAPS[rx]])
-                        for a in _UP_TAPS[ry]])
-      p = _patches(x[:, ry:ry + h + 1, rx:rx + wd + 1], 2, 2)
-      row.append(_matmul(p, taps.reshape(-1, cout)))
+      acc = 0.0
+      for dy in range(2):
+        for dx in range(2):
+          acc = acc + z[:, ry + dy:ry + dy + h, rx + dx:rx + dx + wd,
+                        _UP_TAPS[ry][dy], _UP_TAPS[rx][dx]]
+      row.append(acc)
     phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
   y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
   return y.reshape(b, 2 * h, 2 * wd, cout)

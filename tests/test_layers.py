@@ -55,6 +55,21 @@ def test_conv_up_matches_brute_force(data, impl):
 
 
 @pytest.mark.parametrize('impl', ['matmul', 'xla'])
+def test_conv_up_few_outputs_col2im_matches_brute_force(impl):
+  # Cout * COL2IM_RATIO <= Cin: the generator head's col2im path.
+  rng = np.random.default_rng(1)
+  x = rng.normal(size=(2, 4, 8, 16)).astype(np.float32)
+  w = rng.normal(size=(4, 4, 16, 2)).astype(np.float32)
+  assert 2 * layers.COL2IM_RATIO <= 16
+  want = _np_conv_transpose(_np_cylinder_pad(x), w)
+  got = layers.conv_up(jnp.asarray(x), jnp.asarray(w), impl)
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+  # And its gradient agrees with the XLA path's.
+  f = lambda impl: jax.grad(lambda x: jnp.sum(jnp.sin(layers.conv_up(x, w, impl))))(x)
+  np.testing.assert_allclose(f('matmul'), f('xla'), rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize('impl', ['matmul', 'xla'])
 def test_conv_down_matches_brute_force(data, impl):
   x, w = data
   want = _np_conv(_np_cylinder_pad(x), w)
