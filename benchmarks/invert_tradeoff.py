@@ -74,7 +74,7 @@ def main():
         f'{os.cpu_count()} CPUs, jax {jax.__version__}')
   rows = []
   for n in map(int, a.iters.split(',')):
-    inversion.invert(params, target, num_steps=n)  # compile
+    jax.block_until_ready(inversion.invert(params, target, num_steps=n))  # compile
     t = time.perf_counter()
     res = jax.block_until_ready(inversion.invert(params, target, num_steps=n))
     dt = time.perf_counter() - t
@@ -89,7 +89,7 @@ def main():
   for b in (1, 32):
     tgt = sampling.sample(params, jax.random.key(7), b)['scan']
     n = 50
-    inversion.invert(params, tgt, num_steps=n)
+    jax.block_until_ready(inversion.invert(params, tgt, num_steps=n))
     ts = []
     for _ in range(3):
       t = time.perf_counter()

@@ -4,13 +4,14 @@ Public API:
   load_checkpoint(workdir) -> (GeneratorParams, config)
   sample(params, key, num) -> dict of inverse depth, measurability, mask, scan, points
   invert(params, scan, ...) -> latent search reconstruction
+  render_drops(params, scan) -> realistic point-drops for a clean scan
 """
 
 from dusty_jax.checkpoint import load_checkpoint
-from dusty_jax.inversion import invert
+from dusty_jax.inversion import invert, render_drops
 from dusty_jax.models import GeneratorParams
 from dusty_jax.sampling import sample
 from dusty_jax.sensor import SensorSpec, get_sensor
 
 __all__ = ['GeneratorParams', 'SensorSpec', 'get_sensor', 'invert',
-           'load_checkpoint', 'sample']
+           'load_checkpoint', 'render_drops', 'sample']

@@ -141,3 +141,32 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
   if single:
     out = jax.tree.map(lambda v: v[0], out)
   return out
+
+
+def render_drops(params: models.GeneratorParams, scan, *, key=None,
+                 num_samples: int = 1, num_steps: int = 1000,
+                 impl: str | None = None):
+  """Gives a clean scan (e.g. a simulated one) realistic point-drops.
+
+  Inverts ``scan`` (H, W) or (B, H, W), then samples ``num_samples`` drop
+  masks per scan from the fitted measurability, and applies them to the
+  scan itself (not to the reconstruction).
+
+  Returns dict: ``measurability`` (B, H, W), ``masks`` and ``scans``
+  (num_samples, B, H, W), and ``inversion`` (the full :func:`invert` result).
+  """
+  scan = jnp.asarray(scan, jnp.float32)
+  single = scan.ndim == 2
+  batch = scan[None] if single else scan
+  key = jax.random.key(0) if key is None else key
+  k_inv, k_mask = jax.random.split(key)
+  rec = invert(params, batch, key=k_inv, num_steps=num_steps, impl=impl)
+  p = rec['measurability']
+  u = jax.random.uniform(k_mask, (num_samples,) + p.shape)
+  masks = (u < p).astype(jnp.float32)
+  scans = jnp.where(masks > 0, jnp.where(jnp.isfinite(batch), batch, ALPHA), ALPHA)
+  out = {'measurability': p, 'masks': masks, 'scans': scans, 'inversion': rec}
+  if single:
+    out = {'measurability': p[0], 'masks': masks[:, 0], 'scans': scans[:, 0],
+           'inversion': jax.tree.map(lambda v: v[0], rec)}
+  return out

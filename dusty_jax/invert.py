@@ -98,6 +98,29 @@ def evaluate_batch(params, target_depth, result, angles):
   return errs
 
 
+def ground_truth(directory, split, sensor, num):
+  """(complete depth, drop probability) of a simulated split, else None."""
+  from dusty_jax.data import arrays
+  try:
+    return (np.asarray(arrays.load_split(directory, split, sensor, 'complete')[:num]),
+            np.asarray(arrays.load_split(directory, split, sensor, 'drop_prob')[:num]))
+  except FileNotFoundError:
+    return None
+
+
+def complete_depth_errors(params, result, complete):
+  """Errors of x_tilde against the simulator's complete depth (every pixel a
+  perfect sensor returns, dropped or not)."""
+  from dusty_jax import projection
+  from dusty_jax.metrics import depth as depth_metrics
+  pred, _ = projection.decode(result['inv_depth'], params.sensor)
+  mask = np.asarray(projection.valid_depth(complete, params.sensor))
+  out = depth_metrics.depth_errors(pred, complete, mask)
+  out = {k: np.asarray(v) for k, v in out.items() if k != 'count'}
+  out['cd'] = np.full(len(complete), np.nan)
+  return out
+
+
 def format_table(rows: dict) -> str:
   """Rows {label: {metric: mean}} in the layout of the paper's Table III."""
   head = f'{"":24s}' + ''.join(f'{name:>12s}' for _, name, _ in TABLE_COLUMNS)
@@ -146,9 +169,11 @@ def run(a):
     d = pipeline.dataset_dir(config, sensor, log=lambda m: None)
     data = arrays.load_split(d, a.split, sensor)
     items = [(f'{a.split}_{i:05d}', data[i]) for i in range(min(a.num, len(data)))]
+    truth = ground_truth(d, a.split, sensor, len(items))
   os.makedirs(a.out, exist_ok=True)
   key = jax.random.key(a.seed)
   per_scan = []
+  measurability, complete_err = [], []
   for start in tqdm.trange(0, len(items), a.batch, desc='inverting', unit='batch',
                            file=sys.stderr):
     chunk = items[start:start + a.batch]
@@ -160,6 +185,10 @@ def run(a):
     res = jax.device_get(inversion.invert(params, target, key=keys,
                                           num_steps=a.steps))
     errs = evaluate_batch(params, depth, res, angles)
+    if a.split and truth is not None:
+      sl = slice(start, start + len(chunk))
+      measurability.append(res['measurability'])
+      complete_err.append(complete_depth_errors(params, res, truth[0][sl]))
     for i, (name, _) in enumerate(chunk):
       per_scan.append({'name': name, **{m: float(v[i]) for m, v in errs.items()},
                        'loss': float(res['loss'][i])})
@@ -183,6 +212,25 @@ def run(a):
     json.dump({'mean': mean, 'per_scan': per_scan, 'corrupt': a.corrupt,
                'steps': a.steps}, f, indent=2)
   print(format_table({label: mean}))
+  if measurability:
+    from dusty_jax.metrics import calibration
+    comp = {k: float(np.nanmean(np.concatenate([c[k] for c in complete_err])))
+            for k in complete_err[0]}
+    cal = calibration.reliability(np.concatenate(measurability), 1.0 - truth[1])
+    print(format_table({'x_tilde vs complete depth': comp}))
+    print(f'measurability vs true return probability: ECE {cal["ece"]:.4f}')
+    writers.line_plot(os.path.join(a.out, 'reliability.png'),
+                      {'measured': (np.arange(len(cal['pred'])), cal['truth']),
+                       'predicted': (np.arange(len(cal['pred'])), cal['pred'])},
+                      'bin of predicted measurability', 'return probability',
+                      title=f'ECE {cal["ece"]:.4f}')
+    with open(os.path.join(a.out, 'metrics.json')) as f:
+      saved = json.load(f)
+    saved['ground_truth'] = {'complete_depth': comp, 'ece': cal['ece'],
+                             'reliability': {k: np.asarray(v).tolist()
+                                             for k, v in cal.items() if k != 'ece'}}
+    with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
+      json.dump(saved, f, indent=2)
 
 
 if __name__ == '__main__':

@@ -42,3 +42,23 @@ def test_evaluate_cli(smoke_run, tmp_path):
   row = ev['rows']['dusty1']
   assert len(row['jsd']) == 2 and all(0 <= c <= 1 for c in row['cov'])
   assert all(0 <= v <= 1 for v in row['nna']) and all(v > 0 for v in row['mmd'])
+
+
+def test_tolerance_tuning_baseline(tiny):
+  """HyperOpt tunes beta for the baseline: the score at the chosen beta is
+  no worse than at the ends of the search range."""
+  from dusty_jax import evaluate, trainer
+  from train_helpers import tiny_config
+  setup = trainer.make_setup(tiny_config(model='baseline'), tiny)
+  state = trainer.init_state(setup, jax.random.key(0))
+  params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles())
+  rng = np.random.default_rng(1)
+  d = rng.uniform(3, 60, (8,) + tiny.shape).astype(np.float32)
+  d[rng.uniform(size=d.shape) < 0.2] = 0
+  val = np.asarray(projection.encode(d, tiny))
+  beta = evaluate.tune_tolerance(params, val, trials=6, points=32)
+  assert 1e-3 <= beta <= 1e-1
+  gen = evaluate._sample_scans(params, jax.random.key(0), len(val))
+  score = lambda b: protocol.tolerance_score(protocol.compare(
+      val, gen, params.angles, tiny, 32, jax.random.key(0), tolerance_gen=b)[0])
+  assert score(beta) <= max(score(1e-3), score(1e-1)) + 1e-9

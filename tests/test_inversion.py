@@ -147,7 +147,27 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
                       '--split', 'val', '--num', '2', '--steps', '5', '--out', str(out / 's')],
                      env=env, capture_output=True, text=True, timeout=600)
   assert r.returncode == 0, r.stderr[-3000:]
+  # Simulated data: also against the ground truth only a simulator has.
+  assert 'x_tilde vs complete depth' in r.stdout and 'ECE' in r.stdout
+  gt = json.load(open(out / 's' / 'metrics.json'))['ground_truth']
+  assert 0 <= gt['ece'] <= 1 and np.isfinite(gt['complete_depth']['abs_rel'])
+  assert (out / 's' / 'reliability.png').is_file()
   bad = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
                         '--input', str(tmp_path / 'missing.bin')], env=env,
                        capture_output=True, text=True)
   assert bad.returncode != 0 and 'missing.bin: no such file' in bad.stderr
+
+
+def test_render_drops_on_clean_scan(gen):
+  _, complete = _targets(gen, n=2)
+  out = inversion.render_drops(gen, complete, key=jax.random.key(4), num_samples=3,
+                               num_steps=10)
+  assert out['masks'].shape == (3, 2) + gen.sensor.shape
+  m, s = np.asarray(out['masks']), np.asarray(out['scans'])
+  # Kept pixels keep the clean scan's values exactly; the rest are drops.
+  np.testing.assert_array_equal(s[m == 1], np.broadcast_to(np.asarray(complete), s.shape)[m == 1])
+  assert (s[m == 0] == ALPHA).all()
+  # Drop rate follows the fitted measurability.
+  assert abs(m.mean() - float(np.asarray(out['measurability']).mean())) < 0.02
+  single = inversion.render_drops(gen, complete[0], num_steps=5)
+  assert single['scans'].shape == (1,) + gen.sensor.shape

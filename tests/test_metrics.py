@@ -194,3 +194,21 @@ def test_scans_to_clouds_units(tiny):
   norms = np.linalg.norm(np.asarray(pts), axis=-1)
   np.testing.assert_allclose(norms[np.asarray(valid)], 0.5, rtol=1e-4)
   assert not bool(valid[0, 0])
+
+
+def test_reliability_and_ece():
+  from dusty_jax.metrics import calibration
+  rng = np.random.default_rng(12)
+  truth = rng.uniform(size=100_000)
+  perfect = calibration.reliability(truth, truth, bins=10)
+  assert perfect['ece'] < 1e-12 and perfect['count'].sum() == 100_000
+  biased = calibration.reliability(np.clip(truth + 0.2, 0, 1), truth, bins=10)
+  # Brute force: weighted mean of per-bin |mean pred - mean truth|.
+  pred = np.clip(truth + 0.2, 0, 1)
+  b = np.minimum((pred * 10).astype(int), 9)
+  want = sum((b == i).mean() * abs(pred[b == i].mean() - truth[b == i].mean())
+             for i in range(10) if (b == i).any())
+  assert biased['ece'] == pytest.approx(want, rel=1e-9)
+  assert 0.15 < biased['ece'] < 0.2
+  with pytest.raises(ValueError, match='at least one pixel'):
+    calibration.reliability(truth, truth, mask=np.zeros_like(truth, bool))
