@@ -71,38 +71,41 @@ def _grid(resolution: int):
   return sphere.astype(np.float32), index, shell
 
 
-@functools.partial(jax.jit, static_argnames='resolution')
-def _grid_counts(points, valid, sphere, index, shell, resolution):
-  """Counts of points at their nearest sphere grid point, summed over clouds.
+@jax.jit
+def _nearest_shell(points, shell_pts):
+  """Index into the shell of each point's nearest shell grid point."""
+  d = (jnp.sum(points * points, -1)[:, None] + jnp.sum(shell_pts * shell_pts, -1)[None]
+       - 2.0 * points @ shell_pts.T)
+  return jnp.argmin(d, axis=1)
 
-  The nearest full-grid point is found by rounding; when it lies outside the
-  sphere, the nearest sphere point is on the sphere's boundary shell (an
-  interior point always has a closer neighbour towards the query), so only
-  the shell is searched.
-  """
-  pts = points.reshape(-1, 3)
-  ok = valid.reshape(-1)
-  ijk = jnp.clip(jnp.round((pts + 0.5) * (resolution - 1)), 0, resolution - 1)
-  ijk = ijk.astype(jnp.int32)
-  flat = (ijk[:, 0] * resolution + ijk[:, 1]) * resolution + ijk[:, 2]
-  direct = index[flat]
-  shell_pts = sphere[shell]
 
-  def nearest_shell(p):
-    return shell[jnp.argmin(jnp.sum(jnp.square(shell_pts - p), -1))]
-
-  fallback = jax.lax.map(nearest_shell, pts, batch_size=1024)
-  cell = jnp.where(direct >= 0, direct, fallback)
-  return jnp.zeros(len(sphere)).at[cell].add(ok.astype(jnp.float32))
+SHELL_CHUNK = 4096
 
 
 def occupancy(clouds, valid=None, resolution: int = JSD_RESOLUTION, scale=0.5):
-  """Grid counts of a set of clouds (B, P, 3), scaled by ``scale`` first."""
-  clouds = jnp.asarray(clouds, jnp.float32) * scale
-  valid = jnp.ones(clouds.shape[:2], bool) if valid is None else jnp.asarray(valid)
+  """Grid counts of a set of clouds (B, P, 3), scaled by ``scale`` first.
+
+  Each point counts at its nearest grid point inside the sphere. The nearest
+  full-grid point comes from rounding; only when that lies outside the
+  sphere is the nearest sphere point searched for, and then only on the
+  sphere's boundary shell (an interior point always has a closer neighbour
+  towards the query).
+  """
+  pts = np.asarray(clouds, np.float32).reshape(-1, 3) * scale
+  ok = (np.ones(len(pts), bool) if valid is None
+        else np.asarray(valid, bool).reshape(-1))
+  pts = pts[ok]
   sphere, index, shell = _grid(resolution)
-  return _grid_counts(clouds, valid, jnp.asarray(sphere), jnp.asarray(index),
-                      jnp.asarray(shell), resolution)
+  ijk = np.clip(np.rint((pts + 0.5) * (resolution - 1)), 0, resolution - 1).astype(np.int64)
+  cell = index[(ijk[:, 0] * resolution + ijk[:, 1]) * resolution + ijk[:, 2]]
+  outside = np.flatnonzero(cell < 0)
+  shell_pts = jnp.asarray(sphere[shell])
+  for i in range(0, len(outside), SHELL_CHUNK):
+    sel = outside[i:i + SHELL_CHUNK]
+    chunk = np.zeros((SHELL_CHUNK, 3), np.float32)  # one compiled shape
+    chunk[:len(sel)] = pts[sel]
+    cell[sel] = shell[np.asarray(_nearest_shell(jnp.asarray(chunk), shell_pts))[:len(sel)]]
+  return np.bincount(cell, minlength=len(sphere)).astype(np.float64)
 
 
 def _entropy2(p):

@@ -16,6 +16,8 @@ batch. PGGAN also reports SWD x 1e3; the values here are unscaled.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -42,6 +44,7 @@ def pyr_up(x):
   return _blur(up, gain=2.0)  # 2 per axis: 4 in all, as cv2.pyrUp.
 
 
+@functools.partial(jax.jit, static_argnames='levels')
 def laplacian_pyramid(x, levels: int):
   pyr = [x]
   for _ in range(1, levels):
@@ -55,6 +58,7 @@ def num_levels(shape, min_size: int = 16) -> int:
   return max(int(np.log2(min(shape) // min_size)) + 1, 1)
 
 
+@functools.partial(jax.jit, static_argnames=('per_image', 'size'))
 def patches(key, images, per_image: int = 128, size: int = 7):
   """(B, H, W) -> (B * per_image, size * size) random patches."""
   b, h, w = images.shape
@@ -74,6 +78,7 @@ def normalise(desc):
   return desc / (desc.std() + 1e-8)  # one channel: one mean and std.
 
 
+@functools.partial(jax.jit, static_argnames=('repeats', 'per_repeat'))
 def sliced_wasserstein(key, a, b, repeats: int = 4, per_repeat: int = 128):
   if a.shape != b.shape:
     raise ValueError(f'descriptor sets differ in shape: {a.shape} vs {b.shape}')
