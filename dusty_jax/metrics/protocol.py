@@ -23,7 +23,7 @@ def evenly(n_total: int, num: int) -> np.ndarray:
 
 
 def prepare_set(scans, angles, sensor, points: int, tolerance: float = 0.0):
-  """(B, H, W) scans -> FPS clouds (B, points, 3) and full clouds + masks."""
+  """(B, H, W) scans -> FPS clouds (B, points, 3), full clouds, validity."""
   full, valid = clouds.scans_to_clouds(scans, angles, sensor, tolerance)
   return np.asarray(clouds.farthest_point_sample(full, valid, points)), full, valid
 
@@ -45,7 +45,8 @@ def compare(ref_scans, gen_scans, angles, sensor, points: int, key,
   d_ss = chamfer.pairwise(gen[0], tile=tile, progress=progress)
   mmd, cov = point_sets.mmd_cov(d_rs.T)
   out = {
-      'jsd': point_sets.jsd(ref[1], gen[1], ref[2], gen[2]),
+      # All point metrics on the farthest-point-sampled clouds, as the paper.
+      'jsd': point_sets.jsd(ref[0], gen[0]),
       'cov': cov, 'mmd': mmd,
       'nna': point_sets.one_nna(d_rr, d_rs, d_ss),
       'swd': swd.swd(key, ref_scans, gen_scans)['swd_mean'],
