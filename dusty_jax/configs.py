@@ -36,6 +36,7 @@ def default() -> ml_collections.ConfigDict:
   c.r1_gamma = 1.0
   c.r1_every = 16                # lazy R1 as in the authors' trainer; 1 = every step
   c.ema_halflife_kimg = 10.0
+  c.ema_rampup = 0.0             # >0: half-life min(10k, rampup x images seen)
   c.augment = 'brightness,contrast,translation,cutout'
   c.num_steps = 100_000
 

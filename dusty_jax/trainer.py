@@ -58,6 +58,9 @@ class Setup:
   r1_gamma: float = flax.struct.field(pytree_node=False)
   r1_every: int = flax.struct.field(pytree_node=False)
   ema_decay: float = flax.struct.field(pytree_node=False)
+  ema_halflife_img: float = flax.struct.field(pytree_node=False)
+  ema_rampup: float = flax.struct.field(pytree_node=False)
+  batch_size: int = flax.struct.field(pytree_node=False)
   policy: tuple = flax.struct.field(pytree_node=False)
 
 
@@ -71,7 +74,8 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
   policy = tuple(p for p in config.augment.split(',') if p)
   return Setup(g, d, tx(), tx(), config.model, sensor, config.latent_dim,
                config.tau, config.r1_gamma, max(int(config.r1_every), 1),
-               float(ema_decay), policy)
+               float(ema_decay), config.ema_halflife_kimg * 1000.0,
+               float(config.get('ema_rampup', 0.0) or 0.0), config.batch_size, policy)
 
 
 def init_state(setup: Setup, key) -> TrainState:
@@ -154,7 +158,14 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   g_updates, g_opt = setup.g_tx.update(g_grads, state.g_opt, state.g_params)
   g_params = optax.apply_updates(state.g_params, g_updates)
 
-  ema = jax.tree.map(lambda e, p: setup.ema_decay * e + (1 - setup.ema_decay) * p,
+  decay = setup.ema_decay
+  if setup.ema_rampup:
+    # StyleGAN2's ramp-up: the half-life grows with the images seen, up to
+    # ema_halflife_kimg, so early samples are not dominated by the init.
+    seen = (state.step + 1).astype(jnp.float32) * setup.batch_size
+    halflife = jnp.minimum(setup.ema_halflife_img, seen * setup.ema_rampup)
+    decay = 0.5 ** (setup.batch_size / jnp.maximum(halflife, 1e-8))
+  ema = jax.tree.map(lambda e, p: decay * e + (1 - decay) * p,
                      state.ema_params, g_params)
   # 'r1' is 0 on steps that skip the penalty.
   metrics = dict(d_metrics, loss_g=loss_g,

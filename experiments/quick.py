@@ -11,6 +11,7 @@ def get_config():
   c.ch_base = 16
   c.ch_max = 128
   c.batch_size = 16
+  c.ema_rampup = 0.05  # short runs: let the EMA follow the generator early
   c.num_steps = 3000
   c.log_every = 20
   c.image_every = 100

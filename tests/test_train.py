@@ -150,3 +150,15 @@ def test_cli_overrides_and_bad_field(tmp_path):
   missing = subprocess.run(cmd + ['--config.data.dir=/nonexistent'], env=env,
                            capture_output=True, text=True)
   assert missing.returncode != 0 and 'dusty_jax.prepare' in missing.stderr
+
+
+def test_ema_rampup_follows_generator_early():
+  """With the ramp-up, after one step of 8 images the half-life is 0.4
+  images: the EMA equals the generator; without it, it stays near the init."""
+  with_rampup = run_steps(1, devices=jax.devices()[:1],
+                          config=tiny_config(ema_rampup=0.05))
+  _assert_trees_close(with_rampup['ema'], with_rampup['g'], rtol=1e-5, atol=1e-6)
+  plain = run_steps(1, devices=jax.devices()[:1])
+  g, e = (np.concatenate([np.ravel(v) for v in jax.tree.leaves(plain[k])])
+          for k in ('g', 'ema'))
+  assert np.abs(g - e).max() > 1e-3
