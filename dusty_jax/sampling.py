@@ -10,8 +10,8 @@ import jax.numpy as jnp
 from dusty_jax import models, projection
 
 
-def decode_scan(params: models.GeneratorParams, inv_depth, mask, scan):
-  """Measured depth and points (in metres) of generated scans."""
+def decode_scan(params: models.GeneratorParams, scan):
+  """Measured depth, validity and points (in metres) of generated scans."""
   depth, valid = projection.decode(scan, params.sensor, params.tolerance)
   points = projection.to_points(depth, params.angles)
   return depth, valid, points
@@ -31,8 +31,7 @@ def synthesize(params: models.GeneratorParams, z, key, train: bool = False,
     out['measurability'] = jnp.ones_like(out['inv_depth'])
   else:
     out['measurability'] = models.measurability(params.model, out['logit'])
-  depth, valid, points = decode_scan(params, out['inv_depth'], out['mask'],
-                                     out['scan'])
+  depth, valid, points = decode_scan(params, out['scan'])
   out.update(depth=depth, valid=valid, points=points)
   return out
 
