@@ -23,13 +23,18 @@ def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> 
   return mngr.save(step, args=ocp.args.StandardSave(state), force=force)
 
 
+def restore(mngr: ocp.CheckpointManager, step: int, target):
+  """The state saved at ``step``, shaped like ``target``."""
+  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
+  return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
+
+
 def restore_latest(mngr: ocp.CheckpointManager, target):
   """(state, step) from the newest checkpoint, or (target, None) if none."""
   step = mngr.latest_step()
   if step is None:
     return target, None
-  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
-  return mngr.restore(step, args=ocp.args.StandardRestore(abstract)), step
+  return restore(mngr, step, target), step
 
 
 def save_config(workdir: str, config):
@@ -64,8 +69,7 @@ def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True):
   step = mngr.latest_step() if step is None else step
   if step is None:
     raise FileNotFoundError(f'{workdir}: no checkpoint saved yet')
-  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
-  state = mngr.restore(step, args=ocp.args.StandardRestore(abstract))
+  state = restore(mngr, step, target)
   try:
     angles = arrays.load_angles(pipeline.dataset_dir(config, sensor, log=lambda m: None),
                                 sensor)

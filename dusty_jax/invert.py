@@ -205,8 +205,8 @@ def run(a):
                  [writers.prob_tile(res['measurability'][i])],
                  [writers.inv_depth_tile(res['scan'][i])]]
         writers.save_grid(os.path.join(a.out, f'{name}.png'), tiles)
-  keys = [k for k, _, _ in TABLE_COLUMNS]
-  mean = {k: float(np.nanmean([r[k] for r in per_scan])) for k in keys}
+  columns = [k for k, _, _ in TABLE_COLUMNS]
+  mean = {k: float(np.nanmean([r[k] for r in per_scan])) for k in columns}
   label = f'{config.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
     json.dump({'mean': mean, 'per_scan': per_scan, 'corrupt': a.corrupt,

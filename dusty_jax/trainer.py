@@ -207,7 +207,7 @@ def _check_finite(step, records):
           'the last good checkpoint is kept (lower lr, or raise r1_gamma)')
 
 
-def _save_images(path, setup, params_bundle, z, key):
+def _save_images(path, params_bundle, z, key):
   from dusty_jax import sampling, writers
   out = jax.device_get(sampling.synthesize(params_bundle, z, key))
   tiles = [
@@ -283,7 +283,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
       if is_main and (done % config.image_every == 0 or done == config.num_steps):
         bundle = generator_bundle(setup, state.ema_params, angles)
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
-                     setup, bundle, z_img, jax.random.key(0))
+                     bundle, z_img, jax.random.key(0))
       bar.update()
   finally:
     bar.close()
