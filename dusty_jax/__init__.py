@@ -3,6 +3,7 @@
 Public API:
   load_checkpoint(workdir) -> (GeneratorParams, config)
   sample(params, key, num) -> dict of inverse depth, measurability, mask, scan, points
+  generate(params, z, key) -> the same dict for given latents z
   invert(params, scan, ...) -> latent search reconstruction
   render_drops(params, scan) -> realistic point-drops for a clean scan
 """
@@ -10,8 +11,8 @@ Public API:
 from dusty_jax.checkpoint import load_checkpoint
 from dusty_jax.inversion import invert, render_drops
 from dusty_jax.models import GeneratorParams
-from dusty_jax.sampling import sample
+from dusty_jax.sampling import generate, sample
 from dusty_jax.sensor import SensorSpec, get_sensor
 
-__all__ = ['GeneratorParams', 'SensorSpec', 'get_sensor', 'invert',
+__all__ = ['GeneratorParams', 'SensorSpec', 'generate', 'get_sensor', 'invert',
            'load_checkpoint', 'render_drops', 'sample']

@@ -1,4 +1,9 @@
-"""Shared defaults for every experiment; experiments/*.py override a few."""
+"""Shared defaults for every experiment; experiments/*.py override a few.
+
+The defaults train as the authors' code (kazuto1011/dusty-gan) does; every
+deviation we prefer is an option here (README: "Differences from the
+authors' code").
+"""
 
 import ml_collections
 
@@ -26,6 +31,8 @@ def default() -> ml_collections.ConfigDict:
   c.ch_max = 512
   c.impl = ''                    # '' = per backend: matmul on CPU, xla on GPU
   c.tau = 1.0                    # Gumbel-sigmoid temperature
+  c.eqlr = 'authors'             # eq-lr constants: authors | fan_in (models.py)
+  c.tolerance = 0.0              # baseline drop tolerance beta (evaluate --tune)
 
   # Optimisation (the paper's Implementation Details).
   c.batch_size = 32              # global, over all devices and hosts
@@ -34,11 +41,13 @@ def default() -> ml_collections.ConfigDict:
   c.beta2 = 0.99
   c.adam_eps = 1e-8
   c.r1_gamma = 1.0
-  c.r1_every = 16                # lazy R1 as in the authors' trainer; 1 = every step
+  c.r1_every = 1                 # R1 every step as the authors; k > 1: lazy (StyleGAN2)
   c.ema_halflife_kimg = 10.0
   c.ema_rampup = 0.0             # >0: half-life min(10k, rampup x images seen)
   c.augment = 'brightness,contrast,translation,cutout'
-  c.num_steps = 100_000
+  c.augment_style = 'authors'    # authors | symmetric (augment.py)
+  # The authors' schedule: 25,000 kimg = 781,250 steps at batch 32.
+  c.num_steps = 25_000_000 // 32
 
   # Logging and checkpoints.
   c.log_every = 50

@@ -25,13 +25,13 @@ def logistic_noise(key, shape):
 def straight_through(logits, noise, tau: float = 1.0):
   """Hard mask in the forward pass, the soft mask's gradient in the backward.
 
-  ``soft = sigmoid((logits + noise) / tau)``; forward value ``soft >= 0.5``.
+  ``soft = sigmoid((logits + noise) / tau)``; forward value ``z > 0`` (``soft > 0.5``, the authors' threshold).
   Stable for logits of any magnitude and small tau: sigmoid saturates to an
   exact 0 or 1 with a zero (not NaN) gradient.
   """
   z = (logits + noise) / tau
   soft = jax.nn.sigmoid(z)
-  hard = (z >= 0).astype(soft.dtype)
+  hard = (z > 0).astype(soft.dtype)
   return hard + (soft - jax.lax.stop_gradient(soft))  # exactly hard forward.
 
 
@@ -43,6 +43,6 @@ def pixel_mask(key, logits, tau: float = 1.0):
 def image_mask(key, logits, tau: float = 1.0, train: bool = True):
   """One noise draw per image shared by its pixels; deterministic at test."""
   if not train:
-    return (logits >= 0).astype(logits.dtype)
+    return (logits > 0).astype(logits.dtype)
   noise = logistic_noise(key, logits.shape[:1] + (1,) * (logits.ndim - 1))
   return straight_through(logits, noise, tau)

@@ -86,7 +86,7 @@ def _invert(params, scans, masks, keys, num_steps, lr, impl):
       lambda t, m, k: _search_one(params, apply, t, m, k, num_steps, lr))(
           scans, masks, keys)
   render_keys = jax.vmap(lambda k: jax.random.fold_in(k, num_steps))(keys)
-  out = jax.vmap(lambda zz, k: sampling.synthesize(params, zz[None], k, impl=impl))(
+  out = jax.vmap(lambda zz, k: sampling.generate(params, zz[None], k, impl=impl))(
       z, render_keys)
   out = jax.tree.map(lambda v: v[:, 0], out)
   out.update(latent=z, loss=loss)

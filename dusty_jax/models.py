@@ -2,11 +2,23 @@
 
 Shapes come from the sensor: the first generator kernel and the last
 discriminator kernel are H/16 x W/16. Every layer uses the equalized learning
-rate: weights are drawn N(0, 1) and scaled at run time by 1/sqrt(fan_in)
-(the sqrt(2) gain of leaky ReLU is applied after the activation, as in the
-authors' code). Fan-in is the number of inputs each output actually sees
-(4 * Cin for a stride-2 transposed 4x4 conv); the authors' PyTorch wrapper
-uses ``weight[0].numel()``, which for transposed convs is Cout * 16 instead.
+rate: weights are drawn N(0, 1) and scaled at run time by a per-layer
+constant (the sqrt(2) gain of leaky ReLU is applied after the activation, as
+in the authors' code). Two choices of the constant (``eqlr``):
+  * ``'authors'`` (default): 1/sqrt(weight[0].numel()) of the authors'
+    PyTorch weight, as their ``EqualLR`` wrapper computes it. For transposed
+    convolutions that is Cout * k * k (the latent projection: Cout * H/16 *
+    W/16), and their output heads are separate layers per output ('depth',
+    'confidence'), each with its own constant. The head kernel is stored
+    here as one (4, 4, Cin, C) array; the per-channel scale gives the
+    function of their separate heads exactly.
+  * ``'fan_in'``: 1/sqrt(number of inputs each output sees): latent_dim for
+    the projection, 4 * Cin for a stride-2 transposed 4x4 conv. Relative to
+    'authors' the projection's constant is x8, up1-up3 x1.41 and the heads
+    x0.25 (DUSty-II confidence x0.354) at the paper's size; with Adam each
+    layer's effective learning rate scales with its constant.
+The discriminator's constants are the true fan-in in both (for a forward
+convolution weight[0].numel() is the fan-in).
 
 Models:
   * ``baseline``: 1 output channel, tanh inverse depth; the scan is x_tilde.
@@ -31,6 +43,7 @@ from dusty_jax.sensor import SensorSpec
 
 MODELS = {'baseline': 1, 'dusty1': 2, 'dusty2': 3}  # output channels.
 DOWNSAMPLE = 16  # four stride-2 stages.
+EQLR = ('authors', 'fan_in')
 
 
 def check_shape(sensor: SensorSpec):
@@ -45,19 +58,49 @@ def _normal(key, shape, dtype=jnp.float32):
   return jax.random.normal(key, shape, dtype)
 
 
+def check_eqlr(eqlr: str) -> str:
+  if eqlr not in EQLR:
+    raise ValueError(f'unknown eqlr {eqlr!r}; known: {list(EQLR)}')
+  return eqlr
+
+
+def up_scale(cin: int, groups, eqlr: str):
+  """Per-output-channel eq-lr constants of a 4x4 stride-2 transposed conv.
+
+  ``groups``: output channels of each separate layer (the authors' heads are
+  one layer per output; a hidden layer is one group).
+  """
+  if check_eqlr(eqlr) == 'fan_in':
+    return jnp.full((sum(groups),), 1.0 / math.sqrt(4 * cin))
+  return jnp.concatenate([jnp.full((g,), 1.0 / math.sqrt(16 * g)) for g in groups])
+
+
 class EqualConv(nn.Module):
-  """4x4 stride-2 conv (``up`` transposed or down), no bias, eq-lr."""
+  """4x4 stride-2 conv (``up`` transposed or down), no bias, eq-lr.
+
+  ``groups`` (transposed only): output channels of each separate layer the
+  authors would use, which sets their eq-lr constants (see module doc).
+  """
   features: int
   up: bool
   impl: str
+  eqlr: str = 'authors'
+  groups: tuple = ()
 
   @nn.compact
   def __call__(self, x):
     cin = x.shape[-1]
     w = self.param('kernel', _normal, (4, 4, cin, self.features))
-    fan_in = (4 if self.up else 16) * cin
-    w = w * (1.0 / math.sqrt(fan_in))
+    if self.up:
+      w = w * up_scale(cin, self.groups or (self.features,), self.eqlr)
+    else:
+      w = w * (1.0 / math.sqrt(16 * cin))
     return (layers.conv_up if self.up else layers.conv_down)(x, w, self.impl)
+
+
+def head_groups(out_channels: int) -> tuple:
+  """The authors' heads: 'depth' (1 channel), then 'confidence' (the rest)."""
+  return (1,) if out_channels == 1 else (1, out_channels - 1)
 
 
 class Generator(nn.Module):
@@ -67,6 +110,7 @@ class Generator(nn.Module):
   ch_base: int = 64
   ch_max: int = 512
   impl: str = 'matmul'
+  eqlr: str = 'authors'
 
   def channels(self, i):
     return min(self.ch_base << i, self.ch_max)
@@ -77,14 +121,17 @@ class Generator(nn.Module):
     c = self.channels(3)
     # Transposed conv of a 1x1 input with an (H/16, W/16) kernel == dense.
     w = self.param('proj', _normal, (self.latent_dim, h0 * w0 * c))
-    x = (z @ w) * (1.0 / math.sqrt(self.latent_dim))
+    fan = self.latent_dim if check_eqlr(self.eqlr) == 'fan_in' else h0 * w0 * c
+    x = (z @ w) * (1.0 / math.sqrt(fan))
     x = x.reshape(z.shape[0], h0, w0, c)
     x = layers.leaky_act(x, self.param('proj_bias', nn.initializers.zeros, (c,)))
     for i in (2, 1, 0):
-      x = EqualConv(self.channels(i), up=True, impl=self.impl, name=f'up{3 - i}')(x)
+      x = EqualConv(self.channels(i), up=True, impl=self.impl, eqlr=self.eqlr,
+                    name=f'up{3 - i}')(x)
       x = layers.leaky_act(
           x, self.param(f'up{3 - i}_bias', nn.initializers.zeros, (x.shape[-1],)))
-    x = EqualConv(self.out_channels, up=True, impl=self.impl, name='head')(x)
+    x = EqualConv(self.out_channels, up=True, impl=self.impl, eqlr=self.eqlr,
+                  groups=head_groups(self.out_channels), name='head')(x)
     return x + self.param('head_bias', nn.initializers.zeros,
                           (self.out_channels,))
 
@@ -147,19 +194,26 @@ def measurability(model: str, logit) -> Any:
   if model == 'dusty1':
     return jax.nn.sigmoid(logit)
   if model == 'dusty2':
-    return jax.nn.sigmoid(logit[..., 0]) * (logit[..., 1] >= 0)
+    return jax.nn.sigmoid(logit[..., 0]) * (logit[..., 1] > 0)
   raise ValueError(f'model {model!r} has no measurability map')
 
 
-def build(model: str, sensor: SensorSpec, latent_dim: int = 512,
-          ch_base: int = 64, ch_max: int = 512, impl: str | None = None):
-  """(generator, discriminator) modules for a model name and sensor."""
+def build_generator(model: str, sensor: SensorSpec, latent_dim: int = 512,
+                    ch_base: int = 64, ch_max: int = 512,
+                    impl: str | None = None, eqlr: str = 'authors') -> Generator:
   if model not in MODELS:
     raise ValueError(f'unknown model {model!r}; known: {sorted(MODELS)}')
   check_shape(sensor)
-  impl = impl or layers.default_impl()
-  g = Generator(sensor, MODELS[model], latent_dim, ch_base, ch_max, impl)
-  d = Discriminator(sensor, ch_base, ch_max, impl)
+  return Generator(sensor, MODELS[model], latent_dim, ch_base, ch_max,
+                   impl or layers.default_impl(), check_eqlr(eqlr))
+
+
+def build(model: str, sensor: SensorSpec, latent_dim: int = 512,
+          ch_base: int = 64, ch_max: int = 512, impl: str | None = None,
+          eqlr: str = 'authors'):
+  """(generator, discriminator) modules for a model name and sensor."""
+  g = build_generator(model, sensor, latent_dim, ch_base, ch_max, impl, eqlr)
+  d = Discriminator(sensor, ch_base, ch_max, g.impl)
   return g, d
 
 
@@ -179,7 +233,8 @@ class GeneratorParams(struct.PyTreeNode):
   ch_max: int = struct.field(pytree_node=False, default=512)
   tau: float = struct.field(pytree_node=False, default=1.0)
   tolerance: float = struct.field(pytree_node=False, default=0.0)
+  eqlr: str = struct.field(pytree_node=False, default='authors')
 
   def module(self, impl: str | None = None) -> Generator:
-    return build(self.model, self.sensor, self.latent_dim, self.ch_base,
-                 self.ch_max, impl)[0]
+    return build_generator(self.model, self.sensor, self.latent_dim,
+                           self.ch_base, self.ch_max, impl, self.eqlr)

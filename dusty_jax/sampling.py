@@ -17,9 +17,13 @@ def decode_scan(params: models.GeneratorParams, scan):
   return depth, valid, points
 
 
-def synthesize(params: models.GeneratorParams, z, key, train: bool = False,
-               impl: str | None = None):
-  """Generator output for latents ``z`` (B, latent_dim) as a dict.
+def generate(params: models.GeneratorParams, z, key, train: bool = False,
+             impl: str | None = None):
+  """What the generator makes of latents ``z`` (B, latent_dim), as a dict.
+
+  ``key`` draws the Gumbel noise of the sampled mask (``train=False``: the
+  test-time mask, DUSty-II's image-level mask noise-free). Latent for
+  latent, the outputs compare with another implementation's.
 
   Keys: ``inv_depth`` (x_tilde, complete), ``measurability`` (probability of
   a return; all ones for the baseline), ``mask`` (sampled), ``scan`` (x),
@@ -40,8 +44,8 @@ def synthesize(params: models.GeneratorParams, z, key, train: bool = False,
 def sample(params: models.GeneratorParams, key, num: int, impl: str | None = None):
   """Draws ``num`` scans: z ~ N(0, I), test-time Gumbel sampling.
 
-  Returns the dict of :func:`synthesize`.
+  Returns the dict of :func:`generate`.
   """
   kz, kmask = jax.random.split(key)
   z = jax.random.normal(kz, (num, params.latent_dim))
-  return synthesize(params, z, kmask, impl=impl)
+  return generate(params, z, kmask, impl=impl)

@@ -6,9 +6,11 @@ once per device with the named axis ``'data'`` (gradients and metrics are
 
 A step updates D, then G, then the EMA of G:
   * D: non-saturating loss on DiffAugmented real and generated scans, plus
-    the R1 penalty (gamma / 2) * E||grad D(aug(x_real))||^2 every
-    ``r1_every`` steps, weighted by ``r1_every`` (lazy regularization; with
-    ``r1_every = 1`` it is applied every step).
+    the R1 penalty (gamma / 2) * E||grad D(aug(x_real))||^2. By default on
+    every step, as the authors' trainer does. With ``r1_every = k > 1`` it is
+    lazy (StyleGAN2): applied every k steps, weighted by k, folded into that
+    step's D update, with StyleGAN2's Adam adjustment for D (lr x c, betas
+    ^ c, c = k / (k + 1)).
   * G: non-saturating loss through the updated D. The generator's forward
     pass from the D step is reused through its VJP (the authors reuse it
     the same way), so G runs forward once per step.
@@ -62,20 +64,41 @@ class Setup:
   ema_rampup: float = flax.struct.field(pytree_node=False)
   batch_size: int = flax.struct.field(pytree_node=False)
   policy: tuple = flax.struct.field(pytree_node=False)
+  augment_style: str = flax.struct.field(pytree_node=False, default='authors')
+
+
+# Runs written before these options existed trained with what is now the
+# non-default choice; their config.json lacks the field.
+LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric'}
+
+
+def legacy_get(config, field: str):
+  """A config field, or the value runs older than the field used."""
+  return config.get(field, LEGACY[field])
 
 
 def make_setup(config, sensor: SensorSpec) -> Setup:
   g, d = models.build(config.model, sensor, config.latent_dim, config.ch_base,
-                      config.ch_max, config.impl or None)
-  tx = lambda: optax.adam(config.lr, b1=config.beta1, b2=config.beta2,
-                          eps=config.adam_eps)
+                      config.ch_max, config.impl or None,
+                      eqlr=legacy_get(config, 'eqlr'))
+  r1_every = max(int(config.r1_every), 1)
+  def tx(lazy_every=1):
+    # StyleGAN2's lazy regularisation: D's Adam sees k / (k + 1) of the
+    # schedule (mb_ratio), so its lr and betas are adjusted.
+    c = lazy_every / (lazy_every + 1) if lazy_every > 1 else 1.0
+    return optax.adam(config.lr * c, b1=config.beta1 ** c, b2=config.beta2 ** c,
+                      eps=config.adam_eps)
   # EMA half-life in images, as the authors' smoothing_kimg.
   ema_decay = 0.5 ** (config.batch_size / max(config.ema_halflife_kimg * 1000, 1e-8))
   policy = tuple(p for p in config.augment.split(',') if p)
-  return Setup(g, d, tx(), tx(), config.model, sensor, config.latent_dim,
-               config.tau, config.r1_gamma, max(int(config.r1_every), 1),
+  style = legacy_get(config, 'augment_style')
+  augment.check(policy, style)
+  return Setup(g, d, tx(), tx(r1_every if config.r1_gamma > 0 else 1),
+               config.model, sensor, config.latent_dim,
+               config.tau, config.r1_gamma, r1_every,
                float(ema_decay), config.ema_halflife_kimg * 1000.0,
-               float(config.get('ema_rampup', 0.0) or 0.0), config.batch_size, policy)
+               float(config.get('ema_rampup', 0.0) or 0.0), config.batch_size,
+               policy, style)
 
 
 def init_state(setup: Setup, key) -> TrainState:
@@ -90,7 +113,7 @@ def init_state(setup: Setup, key) -> TrainState:
                     ema_params=jax.tree.map(jnp.copy, g_params))
 
 
-def generate(setup: Setup, params, z, keys, train=True):
+def render_fakes(setup: Setup, params, z, keys, train=True):
   """Generator forward and rendering; ``keys``: one per example."""
   raw = setup.generator.apply(params, z)
   return models.render_per_example(setup.model, raw, keys, setup.tau, train)
@@ -111,7 +134,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   kz, kmask, kar, kaf, kag = (keys[:, j] for j in range(5))
   z = jax.vmap(lambda k: jax.random.normal(k, (setup.latent_dim,)))(kz)
   d_apply = lambda p, x: setup.discriminator.apply(p, x)
-  aug = lambda k, x: augment.per_example(k, x, setup.policy)
+  aug = lambda k, x: augment.per_example(k, x, setup.policy, setup.augment_style)
 
   # Differentiate with respect to per-device copies of the replicated
   # parameters: the gradients are then this device's own, and pmean averages
@@ -121,7 +144,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
 
   # Generator forward once; its VJP serves the G update below.
   fake, g_vjp = jax.vjp(
-      lambda p: generate(setup, p, z, kmask)['scan'], local(state.g_params))
+      lambda p: render_fakes(setup, p, z, kmask)['scan'], local(state.g_params))
 
   # --- Discriminator ---------------------------------------------------
   do_r1 = setup.r1_gamma > 0
@@ -195,7 +218,7 @@ def generator_bundle(setup: Setup, variables, angles, tolerance=0.0):
       variables=variables, angles=jnp.asarray(angles), model=setup.model,
       sensor=setup.sensor, latent_dim=setup.latent_dim,
       ch_base=setup.generator.ch_base, ch_max=setup.generator.ch_max,
-      tau=setup.tau, tolerance=tolerance)
+      tau=setup.tau, tolerance=tolerance, eqlr=setup.generator.eqlr)
 
 
 def _check_finite(step, records):
@@ -209,7 +232,7 @@ def _check_finite(step, records):
 
 def _save_images(path, params_bundle, z, key):
   from dusty_jax import sampling, writers
-  out = jax.device_get(sampling.synthesize(params_bundle, z, key))
+  out = jax.device_get(sampling.generate(params_bundle, z, key))
   tiles = [
       [writers.inv_depth_tile(x) for x in out['scan']],
       [writers.inv_depth_tile(x) for x in out['inv_depth']],
