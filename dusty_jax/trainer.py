@@ -143,8 +143,10 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   local = lambda tree: lax.pcast(tree, (axis_name,), to='varying')
 
   # Generator forward once; its VJP serves the G update below.
-  fake, g_vjp = jax.vjp(
-      lambda p: render_fakes(setup, p, z, kmask)['scan'], local(state.g_params))
+  def fakes(p):
+    out = render_fakes(setup, p, z, kmask)
+    return out['scan'], out['mask']
+  fake, g_vjp, mask = jax.vjp(fakes, local(state.g_params), has_aux=True)
 
   # --- Discriminator ---------------------------------------------------
   do_r1 = setup.r1_gamma > 0
@@ -192,7 +194,9 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
                      state.ema_params, g_params)
   # 'r1' is 0 on steps that skip the penalty.
   metrics = dict(d_metrics, loss_g=loss_g,
-                 drop_rate=jnp.mean(fake <= projection.ALPHA))
+                 drop_rate=jnp.mean(fake <= projection.ALPHA),
+                 mask_drop_rate=jnp.mean(mask < 0.5),
+                 real_drop_rate=jnp.mean(batch <= projection.ALPHA))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,
