@@ -2,6 +2,7 @@
 
 Public API:
   load_checkpoint(workdir) -> (GeneratorParams, config)
+  load_pretrained(name) -> GeneratorParams shipped with the package
   sample(params, key, num) -> dict of inverse depth, measurability, mask, scan, points
   generate(params, z, key) -> the same dict for given latents z
   invert(params, scan, ...) -> latent search reconstruction
@@ -11,8 +12,9 @@ Public API:
 from dusty_jax.checkpoint import load_checkpoint
 from dusty_jax.inversion import invert, render_drops
 from dusty_jax.models import GeneratorParams
+from dusty_jax.pretrained import load_pretrained
 from dusty_jax.sampling import generate, sample
 from dusty_jax.sensor import SensorSpec, get_sensor
 
 __all__ = ['GeneratorParams', 'SensorSpec', 'generate', 'get_sensor', 'invert',
-           'load_checkpoint', 'render_drops', 'sample']
+           'load_checkpoint', 'load_pretrained', 'render_drops', 'sample']

@@ -56,3 +56,30 @@ def default() -> ml_collections.ConfigDict:
   c.keep_checkpoints = 3
   c.num_images = 8               # samples in each PNG grid
   return c
+
+
+# The study (benchmarks/study.py): baseline vs DUSty-I vs DUSty-II on the
+# simulated HDL-64E scans. 'cpu' fits all three trainings in about 100
+# minutes on 2 CPU cores; 'paper' is the paper's size and schedule.
+STUDY_SCALES = ('cpu', 'paper')
+
+
+def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
+  if scale not in STUDY_SCALES:
+    raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
+  c = default()
+  c.model = model
+  c.sensor.preset = 'kitti'
+  c.data.dir = ''
+  c.data.num_synthetic = 2000
+  if scale == 'cpu':
+    c.latent_dim = 128
+    c.ch_base = 16
+    c.ch_max = 128
+    c.batch_size = 16
+    c.ema_rampup = 0.05
+    c.num_steps = 2500
+    c.log_every = 50
+    c.image_every = 500
+    c.checkpoint_every = 250
+  return c

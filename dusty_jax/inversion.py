@@ -8,6 +8,10 @@ ramp-down, Gaussian latent noise of std 0.05 * max(0, 1 - t / 0.75)^2 at
 progress t, and after every update the latent projected back onto the sphere
 of radius sqrt(d). Each scan's search is independent (vmapped), so a scan
 gives the same result alone or inside a batch.
+
+The authors compute the L1 on inverse depth in [0, 1]; here it is on the
+[-1, 1] of the codec, twice as large. Adam is invariant to that scale (up
+to its eps), so the search follows the same path.
 """
 
 from __future__ import annotations

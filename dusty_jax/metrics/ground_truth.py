@@ -1,0 +1,115 @@
+"""Disentanglement against a simulator's ground truth.
+
+A simulated scan comes with the depth a perfect sensor would see (the
+complete depth, 0 where a ray hits nothing) and the true probability of
+each point-drop. After inverting an observed scan, DUSty's x_tilde should
+match the complete depth everywhere a surface was hit, dropped or not, and
+its measurability should match the true return probability 1 - p_drop.
+
+Pixel sets, per scan:
+  * fit: the observed scan's valid pixels;
+  * completion: pixels the sensor dropped although a surface was in range
+    (complete depth valid, observation dropped): what only a model of the
+    complete scene can fill.
+The baseline has no x_tilde apart from its scan: where it renders a drop
+(x_tilde <= ALPHA + tolerance) a completion pixel counts as not completed;
+``coverage`` is the completed fraction and errors are over covered pixels.
+DUSty's x_tilde is complete by construction (coverage 1): x_tilde = ALPHA
+there means the far end of the range, not a drop.
+
+Measurability (predicted P(return)) is scored by ECE against the true
+return probability, and by the Brier score and ROC AUC against the returns
+actually observed, on all pixels and on surface pixels only (sky pixels,
+which never return, are easy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dusty_jax import projection
+from dusty_jax.metrics import calibration
+from dusty_jax.projection import ALPHA
+
+
+def roc_auc(score, label) -> float:
+  """Area under the ROC curve: P(score of a positive > score of a negative),
+  ties counting one half (Mann-Whitney U with average ranks)."""
+  score = np.asarray(score, np.float64).ravel()
+  label = np.asarray(label, bool).ravel()
+  n_pos = int(label.sum())
+  n_neg = label.size - n_pos
+  if n_pos == 0 or n_neg == 0:
+    return float('nan')
+  order = np.argsort(score, kind='stable')
+  ranks = np.empty(score.size, np.float64)
+  _, first, counts = np.unique(score[order], return_index=True, return_counts=True)
+  # Average rank (1-based) of each group of ties.
+  avg = first + (counts + 1) / 2.0
+  ranks[order] = np.repeat(avg, counts)
+  return float((ranks[label].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
+
+
+def _metric_depth(inv_depth, sensor):
+  """x_tilde -> metres, ALPHA read as the far end of the range (not a drop)."""
+  x = np.clip(np.asarray(inv_depth, np.float64), ALPHA, 1.0)
+  lo, hi = 1.0 / sensor.max_depth, 1.0 / sensor.min_depth
+  return 1.0 / ((x + 1.0) / 2.0 * (hi - lo) + lo)
+
+
+def depth_errors(pred, target, mask) -> dict:
+  """MAE (m) and AbsRel over ``mask``, pooled over all scans' pixels."""
+  mask = np.asarray(mask, bool)
+  if not mask.any():
+    return {'mae_m': float('nan'), 'abs_rel': float('nan'), 'pixels': 0}
+  err = np.abs(pred[mask] - target[mask])
+  return {'mae_m': float(err.mean()), 'abs_rel': float((err / target[mask]).mean()),
+          'pixels': int(mask.sum())}
+
+
+def disentanglement(sensor, inv_depth, measurability, observed, complete,
+                    drop_prob, renders_drop=None, bins: int = 10) -> dict:
+  """Scores an inversion against ground truth.
+
+  Args:
+    sensor: the SensorSpec.
+    inv_depth: (B, H, W) x_tilde of the inversion.
+    measurability: (B, H, W) predicted probability of a return.
+    observed: (B, H, W) metric depth the model was fitted to (0: dropped).
+    complete: (B, H, W) the simulator's complete depth (0: no surface).
+    drop_prob: (B, H, W) the true probability of a drop.
+    renders_drop: optional (B, H, W) bool, pixels the model renders as
+      dropped in x_tilde itself (the baseline): not completed there.
+
+  Returns:
+    dict with ``completion`` and ``fit`` (MAE in metres, AbsRel, pixels),
+    ``coverage``, and ``measurability`` scores (ECE, Brier, AUC; all pixels
+    and surface pixels) with the reliability curve.
+  """
+  observed = np.asarray(observed, np.float64)
+  complete = np.asarray(complete, np.float64)
+  valid_obs = np.asarray(projection.valid_depth(observed, sensor))
+  surface = np.asarray(projection.valid_depth(complete, sensor))
+  completion = surface & ~valid_obs
+  covered = completion if renders_drop is None else completion & ~np.asarray(renders_drop, bool)
+  pred = _metric_depth(inv_depth, sensor)
+  m = np.clip(np.asarray(measurability, np.float64), 0.0, 1.0)
+  truth = 1.0 - np.asarray(drop_prob, np.float64)
+  returned = valid_obs.astype(np.float64)
+  cal = calibration.reliability(m, truth, bins=bins)
+  cal_surface = calibration.reliability(m, truth, bins=bins, mask=surface)
+  return {
+      'completion': depth_errors(pred, complete, covered),
+      'fit': depth_errors(pred, observed, valid_obs),
+      'coverage': float(covered.sum() / max(completion.sum(), 1)),
+      'measurability': {
+          'ece': cal['ece'],
+          'ece_surface': cal_surface['ece'],
+          'brier': float(np.mean(np.square(m - returned))),
+          'brier_surface': float(np.mean(np.square(m - returned)[surface])),
+          'auc': roc_auc(m, valid_obs),
+          'auc_surface': roc_auc(m[surface], valid_obs[surface]),
+          'reliability': {k: np.asarray(v).tolist() for k, v in cal.items()
+                          if k != 'ece'},
+      },
+  }

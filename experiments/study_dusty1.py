@@ -1,0 +1,11 @@
+"""The study's DUSty-I on simulated HDL-64E scans (benchmarks/study.py).
+
+`--config experiments/study_dusty1.py` is the CPU scale; `...study_dusty1.py:paper`
+is the paper's network size and schedule.
+"""
+
+from dusty_jax import configs
+
+
+def get_config(scale='cpu'):
+  return configs.study('dusty1', scale)

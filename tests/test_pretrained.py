@@ -1,0 +1,34 @@
+"""Generators shipped in the package: export/load round trip, and inversion
+with the trained study model where it is present."""
+
+import os
+
+import jax
+import numpy as np
+import pytest
+
+import dusty_jax
+from dusty_jax import pretrained, projection, trainer
+from train_helpers import tiny_config
+
+
+@pytest.mark.parametrize('model', ['baseline', 'dusty2'])
+def test_export_load_round_trip(tiny, tmp_path, model):
+  setup = trainer.make_setup(tiny_config(model=model), tiny)
+  state = trainer.init_state(setup, jax.random.key(0))
+  params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles(),
+                                    tolerance=0.0125)
+  path = pretrained.export(params, 'tiny', source='test', directory=str(tmp_path))
+  back = pretrained.load_file(path)
+  assert (back.model, back.sensor, back.latent_dim, back.tolerance, back.eqlr) == (
+      params.model, params.sensor, params.latent_dim, 0.0125, params.eqlr)
+  z = jax.random.normal(jax.random.key(1), (3, params.latent_dim))
+  a = dusty_jax.generate(params, z, jax.random.key(2))
+  b = dusty_jax.generate(back, z, jax.random.key(2))
+  for k in ('inv_depth', 'measurability', 'scan'):
+    np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]))
+
+
+def test_unknown_name_lists_available():
+  with pytest.raises(ValueError, match='available'):
+    dusty_jax.load_pretrained('no-such-model')
