@@ -1,12 +1,17 @@
 """Seconds per DUSty training step at the paper's size, per conv implementation.
 
     python benchmarks/train_step.py [--model dusty1] [--batch 32] [--repeats 7]
+        [--impls matmul,xla] [--variants authors,fan_in_symmetric]
 
 Prints seconds per step (median of --repeats, after a compile-and-warm-up
-step) and images per second, for each convolution implementation, for a step
-with the R1 penalty and one without; the lazy-R1 average uses the config's
-r1_every. Results are also written to benchmarks/results/train_step.json.
-Compare figures from one run only: shared machines are noisy.
+step) and images per second, for each convolution implementation and config
+variant, for a step with the R1 penalty and one without; the lazy-R1 average
+is for R1 every 16 steps. Variants: ``authors`` (the defaults: the authors'
+eq-lr constants and DiffAugment distributions) and ``fan_in_symmetric``
+(true fan-in constants, symmetric DiffAugment: the defaults before they
+followed the authors). Results are also written to
+benchmarks/results/train_step.json. Compare figures from one run only:
+shared machines are noisy.
 """
 
 import argparse
@@ -23,8 +28,14 @@ from dusty_jax import configs, parallel, trainer
 from dusty_jax.sensor import get_sensor
 
 
-def time_step(impl, r1, model, batch, repeats, sensor):
+VARIANTS = {'authors': {},
+            'fan_in_symmetric': {'eqlr': 'fan_in', 'augment_style': 'symmetric'}}
+LAZY_EVERY = 16
+
+
+def time_step(impl, r1, model, batch, repeats, sensor, variant='authors'):
   c = configs.default()
+  c.update(VARIANTS[variant])
   c.model, c.impl, c.batch_size = model, impl, batch
   c.r1_every = 1
   c.r1_gamma = 1.0 if r1 else 0.0
@@ -55,30 +66,33 @@ def main():
   p.add_argument('--batch', type=int, default=32)
   p.add_argument('--repeats', type=int, default=7)
   p.add_argument('--impls', default='matmul,xla')
+  p.add_argument('--variants', default='authors')
   p.add_argument('--out', default=os.path.join(os.path.dirname(__file__), 'results',
                                                'train_step.json'))
   a = p.parse_args()
   sensor = get_sensor(a.sensor)
-  r1_every = configs.default().r1_every
+  r1_every = LAZY_EVERY
   dev = jax.devices()[0]
   print(f'{a.model} {sensor.height}x{sensor.width} batch {a.batch}, '
         f'{jax.device_count()} x {dev.device_kind} ({jax.default_backend()}), '
         f'{os.cpu_count()} CPUs, jax {jax.__version__}')
   rows = []
   for impl in a.impls.split(','):
-    res = {}
-    for r1 in (True, False):
-      compile_s, times = time_step(impl, r1, a.model, a.batch, a.repeats, sensor)
-      med = statistics.median(times)
-      res[r1] = med
-      rows.append(dict(impl=impl, r1=r1, median_s=med, times=times,
-                       compile_s=compile_s, images_per_s=a.batch / med))
-      print(f'  {impl:6s} R1={"on " if r1 else "off"}: {med:6.2f} s/step '
-            f'(min {min(times):.2f}, max {max(times):.2f}), '
-            f'{a.batch / med:6.2f} img/s, compile {compile_s:.0f} s', flush=True)
-    lazy = (res[True] + (r1_every - 1) * res[False]) / r1_every
-    print(f'  {impl:6s} lazy R1 every {r1_every}: {lazy:6.2f} s/step average, '
-          f'{a.batch / lazy:6.2f} img/s')
+    for variant in a.variants.split(','):
+      res = {}
+      for r1 in (True, False):
+        compile_s, times = time_step(impl, r1, a.model, a.batch, a.repeats, sensor,
+                                     variant)
+        med = statistics.median(times)
+        res[r1] = med
+        rows.append(dict(impl=impl, variant=variant, r1=r1, median_s=med, times=times,
+                         compile_s=compile_s, images_per_s=a.batch / med))
+        print(f'  {impl:6s} {variant:16s} R1={"on " if r1 else "off"}: {med:6.2f} s/step '
+              f'(min {min(times):.2f}, max {max(times):.2f}), '
+              f'{a.batch / med:6.2f} img/s, compile {compile_s:.0f} s', flush=True)
+      lazy = (res[True] + (r1_every - 1) * res[False]) / r1_every
+      print(f'  {impl:6s} {variant:16s} lazy R1 every {r1_every}: {lazy:6.2f} s/step '
+            f'average, {a.batch / lazy:6.2f} img/s')
   os.makedirs(os.path.dirname(a.out), exist_ok=True)
   with open(a.out, 'w') as f:
     json.dump(dict(model=a.model, shape=sensor.shape, batch=a.batch,

@@ -31,6 +31,7 @@ def default() -> ml_collections.ConfigDict:
   c.ch_max = 512
   c.impl = ''                    # '' = per backend: matmul on CPU, xla on GPU
   c.tau = 1.0                    # Gumbel-sigmoid temperature
+  c.drop_const = -1.0            # drops as the discriminator sees them (<= -1)
   c.eqlr = 'authors'             # eq-lr constants: authors | fan_in (models.py)
   c.tolerance = 0.0              # baseline drop tolerance beta (evaluate --tune)
 

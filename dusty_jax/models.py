@@ -157,12 +157,14 @@ class Discriminator(nn.Module):
     return ((x @ w) * (1.0 / math.sqrt(x.shape[-1])) + b)[:, 0]
 
 
-def render(model: str, raw, key, tau: float = 1.0, train: bool = True):
+def render(model: str, raw, key, tau: float = 1.0, train: bool = True,
+           drop_const: float = ALPHA):
   """Generator output (B, H, W, C) -> dict of what the scan is made of.
 
   Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability logits,
   (B, H, W) for dusty1, (B, H, W, 2) pixel/image for dusty2), ``mask`` (the
-  sampled binary mask) and ``scan`` (x = m * x_tilde + (1 - m) * ALPHA).
+  sampled binary mask) and ``scan`` (x = m * x_tilde + (1 - m) * drop_const;
+  the authors' and the codec's drop constant is ALPHA = -1).
   """
   inv = jnp.tanh(raw[..., 0])
   if model == 'baseline':
@@ -177,15 +179,16 @@ def render(model: str, raw, key, tau: float = 1.0, train: bool = True):
             gumbel.image_mask(ki, logit[..., 1], tau, train))
   else:
     raise ValueError(f'unknown model {model!r}; known: {sorted(MODELS)}')
-  scan = mask * inv + (1.0 - mask) * ALPHA
+  scan = mask * inv + (1.0 - mask) * drop_const
   return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
 
 
 def render_per_example(model: str, raw, keys, tau: float = 1.0,
-                       train: bool = True):
+                       train: bool = True, drop_const: float = ALPHA):
   """:func:`render` with one key per example, so results do not depend on
   how a batch is split across devices."""
-  out = jax.vmap(lambda r, k: render(model, r[None], k, tau, train))(raw, keys)
+  out = jax.vmap(lambda r, k: render(model, r[None], k, tau, train, drop_const))(
+      raw, keys)
   return jax.tree.map(lambda v: v[:, 0], out)
 
 

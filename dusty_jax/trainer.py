@@ -65,11 +65,13 @@ class Setup:
   batch_size: int = flax.struct.field(pytree_node=False)
   policy: tuple = flax.struct.field(pytree_node=False)
   augment_style: str = flax.struct.field(pytree_node=False, default='authors')
+  drop_const: float = flax.struct.field(pytree_node=False, default=projection.ALPHA)
 
 
 # Runs written before these options existed trained with what is now the
 # non-default choice; their config.json lacks the field.
-LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric'}
+LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric',
+          'drop_const': projection.ALPHA}
 
 
 def legacy_get(config, field: str):
@@ -93,12 +95,16 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
   policy = tuple(p for p in config.augment.split(',') if p)
   style = legacy_get(config, 'augment_style')
   augment.check(policy, style)
+  drop_const = float(legacy_get(config, 'drop_const'))
+  if drop_const > projection.ALPHA:
+    raise ValueError(f'drop_const={drop_const}: must be <= {projection.ALPHA} '
+                     '(inside the depth range a drop would read as a surface)')
   return Setup(g, d, tx(), tx(r1_every if config.r1_gamma > 0 else 1),
                config.model, sensor, config.latent_dim,
                config.tau, config.r1_gamma, r1_every,
                float(ema_decay), config.ema_halflife_kimg * 1000.0,
                float(config.get('ema_rampup', 0.0) or 0.0), config.batch_size,
-               policy, style)
+               policy, style, drop_const)
 
 
 def init_state(setup: Setup, key) -> TrainState:
@@ -116,7 +122,8 @@ def init_state(setup: Setup, key) -> TrainState:
 def render_fakes(setup: Setup, params, z, keys, train=True):
   """Generator forward and rendering; ``keys``: one per example."""
   raw = setup.generator.apply(params, z)
-  return models.render_per_example(setup.model, raw, keys, setup.tau, train)
+  return models.render_per_example(setup.model, raw, keys, setup.tau, train,
+                                   setup.drop_const)
 
 
 def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
@@ -128,6 +135,8 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   # Randomness per example, from (key, step, global example index): the same
   # whatever the number of devices, so 1- and N-device runs agree.
   b = batch.shape[0]
+  # Drops in the discriminator's input take the drop constant (ALPHA: as is).
+  batch = jnp.where(batch <= projection.ALPHA, setup.drop_const, batch)
   key = jax.random.fold_in(key, state.step)
   ids = lax.axis_index(axis_name) * b + jnp.arange(b)
   keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 5))(ids)
