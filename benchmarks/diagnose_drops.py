@@ -24,6 +24,11 @@ CPU scale is trained for ``--steps`` to tell real scans (label real) from
 the same scans with their drops filled (label fake), with the run's loss,
 DiffAugment and R1, under several settings (R1 gamma, augmentation, width);
 the held-out logit gap and accuracy say whether drops alone are visible to it.
+
+    python benchmarks/diagnose_drops.py --runs NAME=RUN_DIR,... --plot OUT.png
+
+plots the generated and real drop rates of training runs against the step
+(from their metrics.jsonl) and writes them with --json.
 """
 
 from __future__ import annotations
@@ -123,8 +128,43 @@ def can_d_see_drops(steps: int, batch: int = 16, seed: int = 0, only=None):
   return out
 
 
+def trajectories(runs: dict, plot: str):
+  """{name: run dir} -> {name: {'step', 'drop_rate', 'real_drop_rate', ...}}."""
+  import os
+  out = {}
+  for name, d in runs.items():
+    recs = {}
+    with open(os.path.join(d, 'metrics.jsonl')) as f:
+      for line in f:
+        m = json.loads(line)
+        recs[m['step']] = m  # the last record of a step wins
+    steps = sorted(recs)
+    out[name] = {k: [recs[s][k] for s in steps] for k in
+                 ('drop_rate', 'real_drop_rate', 'd_real', 'd_fake')}
+    out[name]['step'] = steps
+  if plot:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, r in out.items():
+      ax.plot(r['step'], r['drop_rate'], label=name)
+    first = next(iter(out.values()))
+    ax.plot(first['step'], first['real_drop_rate'], 'k:', label='real scans')
+    ax.set_xlabel('training step (batch 16)')
+    ax.set_ylabel('drop rate of generated scans')
+    ax.set_title('DUSty-I at the CPU scale: point-drops collapse')
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(plot, dpi=120)
+    plt.close(fig)
+  return out
+
+
 def main(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  ap.add_argument('--runs', default='', help='NAME=DIR,... training runs to plot')
+  ap.add_argument('--plot', default='')
   ap.add_argument('--workdir')
   ap.add_argument('--step', type=int, default=None)
   ap.add_argument('--num', type=int, default=64)
@@ -133,6 +173,16 @@ def main(argv=None):
   ap.add_argument('--steps', type=int, default=300)
   ap.add_argument('--settings', default='', help='names separated by ; (default: all)')
   a = ap.parse_args(argv)
+  if a.runs:
+    runs = dict(item.split('=', 1) for item in a.runs.split(','))
+    out = trajectories(runs, a.plot)
+    for name, r in out.items():
+      print(f'{name:40s} drop rate at steps {r["step"][::10]}: '
+            + ' '.join(f'{v:.3f}' for v in r['drop_rate'][::10]))
+    if a.json:
+      with open(a.json, 'w') as f:
+        json.dump(out, f)
+    return
   if a.can_d_see_drops:
     out = can_d_see_drops(a.steps, only=[s for s in a.settings.split(';') if s])
     if a.json:

@@ -188,9 +188,11 @@ def disentangle(params, split, a):
 
 
 def restoration(params, split, a):
+  import importlib
   import jax
-  from dusty_jax import corrupt, invert, projection
+  from dusty_jax import corrupt, projection
   from dusty_jax.metrics import ground_truth
+  invert_cli = importlib.import_module('dusty_jax.invert')  # the module, not the function
   sensor = params.sensor
   n = min(a.num_restore, len(split('test')))
   obs, comp = split('test')[:n], split('test', 'complete')[:n]
@@ -201,7 +203,7 @@ def restoration(params, split, a):
     target = np.asarray(corrupt.apply(spec, key, clean, sensor))
     res = invert_batched(params, target, a.invert_steps, key,
                          desc=f'{params.model}: {spec}')
-    errs = invert.evaluate_batch(params, obs, res, np.asarray(params.angles))
+    errs = invert_cli.evaluate_batch(params, obs, res, np.asarray(params.angles))
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
     pred = ground_truth._metric_depth(res['inv_depth'], sensor)
     surface = np.asarray(projection.valid_depth(comp, sensor))
@@ -228,7 +230,7 @@ def trade(params, split, a):
   target = np.asarray(projection.encode(obs, sensor))
   rows = []
   for it in TRADE_ITERS:
-    jax.block_until_ready(inversion.invert(params, target[:1], num_steps=it))  # compile
+    jax.block_until_ready(inversion.invert(params, target, num_steps=it))  # compile
     t = time.perf_counter()
     res = jax.device_get(jax.block_until_ready(
         inversion.invert(params, target, num_steps=it)))
