@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 
 import jax
 import ml_collections
@@ -29,12 +30,43 @@ def restore(mngr: ocp.CheckpointManager, step: int, target):
   return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
 
 
-def restore_latest(mngr: ocp.CheckpointManager, target):
-  """(state, step) from the newest checkpoint, or (target, None) if none."""
-  step = mngr.latest_step()
-  if step is None:
-    return target, None
-  return restore(mngr, step, target), step
+def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
+                   set_aside: bool = False):
+  """(state, step) from the newest checkpoint that restores, or (target, None).
+
+  A damaged checkpoint (truncated file, missing metadata, empty step
+  directory) is skipped with a message saying which step and why, and the
+  previous one is tried. With ``set_aside`` (when training resumes) the
+  damaged step directory is moved to ``checkpoints_damaged/`` beside it, so
+  that the step can be saved again; nothing is deleted.
+  """
+  for step in sorted(mngr.all_steps(), reverse=True):
+    # A fresh reader per attempt: a failed restore leaves a manager's item
+    # handlers in a state where the next restore fails too.
+    reader = ocp.CheckpointManager(
+        mngr.directory, options=ocp.CheckpointManagerOptions(read_only=True))
+    try:
+      state = restore(reader, step, target)
+      reader.close()
+      return state, step
+    except Exception as e:  # orbax/TensorStore raise many types.
+      reader.close()
+      reason = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+      log(f'warning: checkpoint step {step} in {mngr.directory} does not restore '
+          f'({type(e).__name__}: {reason}); trying the previous one')
+      if set_aside:
+        src = os.path.join(str(mngr.directory), str(step))
+        dst = os.path.join(os.path.dirname(str(mngr.directory).rstrip('/')),
+                           'checkpoints_damaged', f'{step}_{int(time.time())}')
+        if os.path.isdir(src):
+          os.makedirs(os.path.dirname(dst), exist_ok=True)
+          os.replace(src, dst)
+          log(f'moved the damaged step {step} to {dst}')
+        mngr.reload()
+  if mngr.all_steps():
+    raise FileNotFoundError(f'{mngr.directory}: no saved checkpoint restores '
+                            f'(steps {sorted(mngr.all_steps())})')
+  return target, None
 
 
 def save_config(workdir: str, config):
@@ -66,10 +98,15 @@ def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True):
   setup = trainer.make_setup(config, sensor)
   target = trainer.init_state(setup, jax.random.key(0))
   mngr = manager(workdir, keep=config.keep_checkpoints)
-  step = mngr.latest_step() if step is None else step
   if step is None:
-    raise FileNotFoundError(f'{workdir}: no checkpoint saved yet')
-  state = restore(mngr, step, target)
+    state, step = restore_latest(mngr, target)
+    if step is None:
+      raise FileNotFoundError(f'{workdir}: no checkpoint saved yet')
+  elif step not in mngr.all_steps():
+    raise FileNotFoundError(f'{workdir}: no checkpoint of step {step}; saved '
+                            f'steps: {sorted(mngr.all_steps())}')
+  else:
+    state = restore(mngr, step, target)
   try:
     angles = arrays.load_angles(pipeline.dataset_dir(config, sensor, log=lambda m: None),
                                 sensor)

@@ -59,6 +59,63 @@ def default() -> ml_collections.ConfigDict:
   return c
 
 
+class ConfigError(ValueError):
+  """A config value that cannot work; the message names the field."""
+
+
+# Fields that decide what a checkpoint holds: a run may not resume with
+# other values (the saved arrays would not fit, or would mean something else).
+ARCHITECTURE = ('model', 'latent_dim', 'ch_base', 'ch_max', 'eqlr', 'sensor')
+
+
+def validate(c) -> None:
+  """Checks a config before any work; raises ConfigError naming the field."""
+  def need(ok, field, why):
+    if not ok:
+      raise ConfigError(f'config field {field}={c.get(field)!r}: {why}')
+  need(c.model in ('baseline', 'dusty1', 'dusty2'), 'model',
+       'known models are baseline, dusty1, dusty2')
+  for f in ('batch_size', 'num_steps', 'log_every', 'image_every',
+            'checkpoint_every', 'keep_checkpoints', 'latent_dim', 'ch_base',
+            'ch_max', 'num_images'):
+    need(isinstance(c[f], int) and c[f] >= 1, f, 'must be a whole number >= 1')
+  need(c.lr > 0, 'lr', 'the learning rate must be > 0')
+  need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
+       else 'beta2', 'Adam betas must lie in [0, 1)')
+  need(c.adam_eps > 0, 'adam_eps', 'must be > 0')
+  need(c.r1_gamma >= 0, 'r1_gamma', 'must be >= 0')
+  need(isinstance(c.r1_every, int) and c.r1_every >= 1, 'r1_every',
+       'must be a whole number >= 1 (1: every step)')
+  need(c.tau > 0, 'tau', 'the Gumbel temperature must be > 0')
+  need(c.ema_halflife_kimg >= 0, 'ema_halflife_kimg', 'must be >= 0')
+  need(c.get('drop_const', -1.0) <= -1.0, 'drop_const',
+       'must be <= -1 (inside the depth range a drop would read as a surface)')
+
+
+# Runs written before these options existed trained with what is now the
+# non-default choice; their config.json lacks the field.
+LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0}
+
+
+def legacy_get(config, field: str):
+  """A config field, or the value runs older than the field used."""
+  return config.get(field, LEGACY[field])
+
+
+def architecture_diff(old, new) -> dict:
+  """{field: (old, new)} of the ARCHITECTURE fields that differ between two
+  configs; fields a config predates take their LEGACY value."""
+  out = {}
+  for f in ARCHITECTURE:
+    a, b = old.get(f, LEGACY.get(f)), new.get(f, LEGACY.get(f))
+    if f == 'sensor':
+      a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
+              b.to_dict() if hasattr(b, 'to_dict') else b)
+    if a != b:
+      out[f] = (a, b)
+  return out
+
+
 # The study (benchmarks/study.py): baseline vs DUSty-I vs DUSty-II on the
 # simulated HDL-64E scans. 'cpu' fits all three trainings in about 100
 # minutes on 2 CPU cores; 'paper' is the paper's size and schedule.

@@ -25,10 +25,10 @@ def main(argv):
     raise app.UsageError(f'unexpected arguments: {argv[1:]}')
   parallel.initialize_distributed(FLAGS.coordinator, FLAGS.num_processes,
                                   FLAGS.process_id)
-  from dusty_jax import trainer  # after distributed init.
+  from dusty_jax import configs, trainer  # after distributed init.
   try:
     trainer.train_and_evaluate(FLAGS.config, FLAGS.workdir)
-  except (FileNotFoundError, trainer.NonFiniteLossError) as e:
+  except (FileNotFoundError, configs.ConfigError, trainer.NonFiniteLossError) as e:
     raise SystemExit(f'error: {e}') from None
 
 

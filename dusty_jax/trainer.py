@@ -31,7 +31,7 @@ import numpy as np
 import optax
 from jax import lax
 
-from dusty_jax import augment, losses, models, projection
+from dusty_jax import augment, configs, losses, models, projection
 from dusty_jax.sensor import SensorSpec
 
 AXIS = 'data'
@@ -68,15 +68,7 @@ class Setup:
   drop_const: float = flax.struct.field(pytree_node=False, default=projection.ALPHA)
 
 
-# Runs written before these options existed trained with what is now the
-# non-default choice; their config.json lacks the field.
-LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric',
-          'drop_const': projection.ALPHA}
-
-
-def legacy_get(config, field: str):
-  """A config field, or the value runs older than the field used."""
-  return config.get(field, LEGACY[field])
+legacy_get = configs.legacy_get
 
 
 def make_setup(config, sensor: SensorSpec) -> Setup:
@@ -256,12 +248,29 @@ def _save_images(path, params_bundle, z, key):
   writers.save_grid(path, rows, scale=2)
 
 
+def _check_resumable(workdir: str, config):
+  """Refuses, before anything is written, to resume a run whose checkpoints
+  were made by another architecture."""
+  from dusty_jax import checkpoint
+  if not os.path.isfile(os.path.join(workdir, checkpoint.CONFIG_FILE)):
+    return
+  diff = configs.architecture_diff(checkpoint.load_config(workdir), config)
+  if diff:
+    fields = '; '.join(f'{k}: run has {a!r}, config has {b!r}' for k, (a, b) in diff.items())
+    raise configs.ConfigError(
+        f'{workdir} holds a run of another architecture ({fields}); its checkpoints '
+        'cannot be resumed with this config. Use another --workdir, or the '
+        "run's own values.")
+
+
 def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   """Trains from scratch or resumes from the latest checkpoint in ``workdir``."""
   import tqdm
   from dusty_jax import checkpoint, parallel, sensor as sensor_lib, writers
   from dusty_jax.data import arrays, pipeline
 
+  configs.validate(config)
+  _check_resumable(workdir, config)
   sensor = sensor_lib.from_config(config.sensor)
   mesh = parallel.data_mesh()
   parallel.local_batch_size(config.batch_size, mesh)  # checks divisibility
@@ -280,13 +289,13 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
   state = init_state(setup, k_init)
-  state, restored = checkpoint.restore_latest(mngr, state)
+  state, restored = checkpoint.restore_latest(mngr, state, log=log, set_aside=True)
   start = 0 if restored is None else int(restored)
   if restored is not None:
     log(f'resumed from step {start} in {workdir}')
   state = parallel.replicate(state, mesh)
   step = parallel.data_parallel(step_fn(setup), mesh)
-  writer = writers.MetricWriter(workdir, enabled=is_main)
+  writer = writers.MetricWriter(workdir, enabled=is_main, resume_step=start)
   z_img = jax.random.normal(k_img, (config.num_images, config.latent_dim))
 
   pending = []  # (step, device metrics) not yet fetched.

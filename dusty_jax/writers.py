@@ -87,12 +87,27 @@ def version_event(wall_time: float) -> bytes:
 class MetricWriter:
   """Scalars to ``metrics.jsonl`` and a TensorBoard event file in workdir."""
 
-  def __init__(self, workdir: str, enabled: bool = True):
+  def __init__(self, workdir: str, enabled: bool = True, resume_step: int = 0):
+    """``resume_step``: the step training resumes from; records written after
+    it by an interrupted run are dropped, so each step has one record."""
     self.enabled = enabled
     if not enabled:
       return
     os.makedirs(workdir, exist_ok=True)
-    self.jsonl = open(os.path.join(workdir, 'metrics.jsonl'), 'a')
+    path = os.path.join(workdir, 'metrics.jsonl')
+    if os.path.isfile(path):
+      keep = []
+      with open(path) as f:
+        for line in f:
+          try:
+            if json.loads(line)['step'] <= resume_step:
+              keep.append(line if line.endswith('\n') else line + '\n')
+          except (ValueError, KeyError):
+            pass  # a line cut short by a kill
+      with open(path + '.tmp', 'w') as f:
+        f.writelines(keep)
+      os.replace(path + '.tmp', path)
+    self.jsonl = open(path, 'a')
     now = time.time()
     name = f'events.out.tfevents.{int(now)}.{socket.gethostname()}'
     self.events = open(os.path.join(workdir, name), 'ab')

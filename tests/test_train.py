@@ -1,6 +1,7 @@
 """Training: data parallelism, multi-process, resume, NaN guard, CLI, API."""
 
 import json
+import shutil
 import os
 import socket
 import subprocess
@@ -8,11 +9,12 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import checkpoint, parallel, trainer, writers
+from dusty_jax import checkpoint, configs, parallel, trainer, writers
 from train_helpers import run_steps, tiny_config
 
 HERE = os.path.dirname(__file__)
@@ -162,3 +164,91 @@ def test_ema_rampup_follows_generator_early():
   g, e = (np.concatenate([np.ravel(v) for v in jax.tree.leaves(plain[k])])
           for k in ('g', 'ema'))
   assert np.abs(g - e).max() > 1e-3
+
+
+@pytest.mark.parametrize('field,value', [
+    ('batch_size', 0), ('checkpoint_every', 0), ('log_every', 0), ('lr', -0.002),
+    ('num_steps', 0), ('keep_checkpoints', 0), ('r1_every', 0), ('tau', 0.0)])
+def test_config_is_checked_before_any_work(tmp_path, field, value):
+  config = tiny_config(**{field: value})
+  workdir = tmp_path / 'w'
+  with pytest.raises(configs.ConfigError, match=field):
+    trainer.train_and_evaluate(config, str(workdir), log=lambda m: None)
+  assert not workdir.exists()
+
+
+def test_resume_with_another_architecture_is_refused_untouched(smoke_run, tmp_path):
+  config, workdir, _ = smoke_run
+  copy = tmp_path / 'copy'
+  shutil.copytree(workdir, copy)
+  before = (copy / 'config.json').read_bytes()
+  other = tiny_config(ch_base=4, num_steps=6)
+  other.data.cache = config.data.cache
+  other.data.num_synthetic = config.data.num_synthetic
+  with pytest.raises(configs.ConfigError, match=r'ch_base: run has 8, config has 4'):
+    trainer.train_and_evaluate(other, str(copy), log=lambda m: None)
+  assert (copy / 'config.json').read_bytes() == before
+  # A config older than the eqlr field reads as its legacy value, fan_in.
+  old = json.loads(before)
+  old.pop('eqlr')
+  diff = configs.architecture_diff(ml_collections.ConfigDict(old), config)
+  assert diff == {'eqlr': ('fan_in', 'authors')}
+
+
+def test_metrics_jsonl_has_one_record_per_step_after_resume(tmp_path):
+  path = tmp_path / 'metrics.jsonl'
+  lines = [json.dumps({'step': s, 'loss': s}) for s in (5, 10, 15, 20)]
+  path.write_text('\n'.join(lines) + '\n{"step": 2')  # and a line cut by a kill
+  w = writers.MetricWriter(str(tmp_path), resume_step=10)
+  for s in (15, 20):
+    w.write(s, {'loss': -s})
+  w.close()
+  recs = [json.loads(l) for l in path.read_text().splitlines()]
+  assert [r['step'] for r in recs] == [5, 10, 15, 20]
+  assert [r['loss'] for r in recs] == [5, 10, -15, -20]
+
+
+def test_cli_config_error_is_one_line(tmp_path):
+  env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
+  env.pop('XLA_FLAGS', None)
+  res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config',
+                        os.path.join(HERE, '..', 'experiments', 'smoke.py'),
+                        '--workdir', str(tmp_path / 'w'), '--config.batch_size=0'],
+                       env=env, capture_output=True, text=True, timeout=300)
+  assert res.returncode != 0 and 'Traceback' not in res.stderr
+  assert 'batch_size=0' in res.stderr.strip().splitlines()[-1]
+  assert not (tmp_path / 'w').exists()
+
+
+@pytest.mark.parametrize('damage', ['truncate', 'metadata', 'empty'])
+def test_damaged_latest_checkpoint_falls_back(smoke_run, tmp_path, damage):
+  config, workdir, _ = smoke_run
+  copy = tmp_path / 'copy'
+  shutil.copytree(workdir, copy)
+  latest = copy / 'checkpoints' / '4'
+  if damage == 'empty':
+    shutil.rmtree(latest)
+    latest.mkdir()
+  elif damage == 'metadata':
+    (latest / '_CHECKPOINT_METADATA').unlink()
+    for p in latest.rglob('_METADATA'):
+      p.unlink()
+  else:
+    files = sorted((p for p in latest.rglob('*') if p.is_file()),
+                   key=lambda p: p.stat().st_size)
+    big = files[-1]
+    big.write_bytes(big.read_bytes()[:big.stat().st_size // 3])
+  messages = []
+  params, _ = checkpoint.load_checkpoint(str(copy))  # falls back to step 2
+  ref, _ = checkpoint.load_checkpoint(str(workdir), step=2)
+  for a, b in zip(jax.tree.leaves(params.variables), jax.tree.leaves(ref.variables)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  with pytest.raises(FileNotFoundError, match=r'saved steps: \[2, 4\]'):
+    checkpoint.load_checkpoint(str(workdir), step=3)
+  if damage != 'empty':
+    return
+  # Resume trains on from step 2 and can save step 4 again.
+  trainer.train_and_evaluate(config, str(copy), log=messages.append)
+  assert any('step 4' in m and 'does not restore' in m for m in messages)
+  assert any('resumed from step 2' in m for m in messages)
+  assert checkpoint.load_checkpoint(str(copy))[0] is not None
