@@ -205,7 +205,7 @@ def restoration(params, split, a):
                          desc=f'{params.model}: {spec}')
     errs = invert_cli.evaluate_batch(params, obs, res, np.asarray(params.angles))
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
-    pred = ground_truth._metric_depth(res['inv_depth'], sensor)
+    pred = np.asarray(projection.complete_depth(res['inv_depth'], sensor), np.float64)
     surface = np.asarray(projection.valid_depth(comp, sensor))
     rd = renders_drop(params, res['inv_depth'])
     covered = surface if rd is None else surface & ~rd

@@ -83,7 +83,8 @@ def evaluate_batch(params, target_depth, result, angles):
   sensor = params.sensor
   target_depth = np.asarray(target_depth, np.float32)
   valid_t = np.asarray(projection.valid_depth(target_depth, sensor))
-  pred, _ = projection.decode(result['inv_depth'], sensor)
+  # x_tilde is complete: ALPHA there is max_depth, not a drop.
+  pred = projection.complete_depth(result['inv_depth'], sensor)
   errs = {k: np.asarray(v) for k, v in
           depth_metrics.depth_errors(pred, target_depth, valid_t).items()}
   pts_t = np.asarray(projection.to_points(target_depth, angles)) / sensor.max_depth
@@ -113,7 +114,7 @@ def complete_depth_errors(params, result, complete):
   perfect sensor returns, dropped or not)."""
   from dusty_jax import projection
   from dusty_jax.metrics import depth as depth_metrics
-  pred, _ = projection.decode(result['inv_depth'], params.sensor)
+  pred = projection.complete_depth(result['inv_depth'], params.sensor)
   mask = np.asarray(projection.valid_depth(complete, params.sensor))
   out = depth_metrics.depth_errors(pred, complete, mask)
   out = {k: np.asarray(v) for k, v in out.items() if k != 'count'}

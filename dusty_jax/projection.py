@@ -77,6 +77,17 @@ def decode(x, sensor: SensorSpec, tolerance: float = 0.0):
   return jnp.where(valid, 1.0 / inv, 0.0), valid
 
 
+def complete_depth(x_tilde, sensor: SensorSpec):
+  """A complete inverse depth (DUSty's x_tilde) -> metric depth everywhere.
+
+  Unlike :func:`decode`, nothing is a drop: x_tilde = ALPHA is the far end
+  of the range (max_depth), not a missing point.
+  """
+  x = jnp.clip(jnp.asarray(x_tilde, jnp.float32), ALPHA, 1.0)
+  lo, hi = _inv_bounds(sensor)
+  return 1.0 / ((x + 1.0) / 2.0 * (hi - lo) + lo)
+
+
 # ----------------------------------------------------------------------------
 # Point clouds -> range images (numpy; data preparation).
 # ----------------------------------------------------------------------------

@@ -55,3 +55,31 @@ def test_encode_gradient_finite_at_extremes(kitti):
   d = jnp.array([0.0, 0.9, 1e-30, 119.9999, 120.0, 1e30, jnp.inf, jnp.nan])
   g = jax.grad(lambda d: projection.encode(d, kitti).sum())(d)
   assert np.isfinite(np.asarray(g)).all()
+
+
+def test_complete_depth_reads_alpha_as_max_range(kitti):
+  """x_tilde is complete: ALPHA is 120 m there, not a drop (decode's 0)."""
+  from dusty_jax import projection
+  d = np.array([1.0, 5.0, 30.0, 119.0], np.float32)
+  np.testing.assert_allclose(
+      np.asarray(projection.complete_depth(projection.encode(d, kitti), kitti)), d,
+      rtol=1e-4)
+  ends = np.asarray(projection.complete_depth(np.array([-1.0, 1.0, -3.0]), kitti))
+  np.testing.assert_allclose(ends, [kitti.max_depth, kitti.min_depth, kitti.max_depth],
+                             rtol=1e-5)
+
+
+def test_reconstruction_errors_of_a_far_x_tilde(tiny):
+  """A target at 119 m reconstructed as x_tilde = -1 (120 m) is nearly exact."""
+  import importlib
+  import jax.numpy as jnp
+  from dusty_jax import models
+  invert_cli = importlib.import_module('dusty_jax.invert')
+  params = models.GeneratorParams(variables={}, angles=jnp.asarray(tiny.nominal_angles()),
+                                  sensor=tiny)
+  target = np.full((1,) + tiny.shape, 119.0, np.float32)
+  x = -np.ones((1,) + tiny.shape, np.float32)
+  pts = np.zeros((1,) + tiny.shape + (3,), np.float32)
+  res = {'inv_depth': x, 'points': pts, 'valid': np.zeros((1,) + tiny.shape, bool)}
+  errs = invert_cli.evaluate_batch(params, target, res, np.asarray(tiny.nominal_angles()))
+  assert errs['abs_rel'][0] == pytest.approx(1 / 119, rel=1e-3)

@@ -4,9 +4,12 @@ Clouds are in units of the sensor's max range (120 m), as the reference
 metric code expects; dropped pixels are excluded.
 
 Farthest point sampling starts from the first valid pixel in raster order
-(row-major over the range image, i.e. the top ring's first column), the
-deterministic choice of the reference CUDA kernel, which starts at index 0.
-Dropped pixels are never selected. A cloud with fewer valid points than
+(row-major over the range image, i.e. the top ring's first column).
+Dropped pixels are never selected. The DUSty authors' CUDA kernel differs:
+it always starts at pixel 0 (a dropped pixel in most scans, so their clouds
+contain the origin) and never picks points within sqrt(1e-3) x 120 m =
+3.79 m of the sensor; the two agree only when pixel 0 is valid and no valid
+point is that near. A cloud with fewer valid points than
 asked for repeats its points (after every valid point is taken, the farthest
 remaining distance is 0 and the first valid point is chosen again); a cloud
 with no valid point cannot be sampled and raises.

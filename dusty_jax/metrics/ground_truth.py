@@ -29,7 +29,6 @@ import numpy as np
 
 from dusty_jax import projection
 from dusty_jax.metrics import calibration
-from dusty_jax.projection import ALPHA
 
 
 def roc_auc(score, label) -> float:
@@ -48,13 +47,6 @@ def roc_auc(score, label) -> float:
   avg = first + (counts + 1) / 2.0
   ranks[order] = np.repeat(avg, counts)
   return float((ranks[label].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
-
-
-def _metric_depth(inv_depth, sensor):
-  """x_tilde -> metres, ALPHA read as the far end of the range (not a drop)."""
-  x = np.clip(np.asarray(inv_depth, np.float64), ALPHA, 1.0)
-  lo, hi = 1.0 / sensor.max_depth, 1.0 / sensor.min_depth
-  return 1.0 / ((x + 1.0) / 2.0 * (hi - lo) + lo)
 
 
 def depth_errors(pred, target, mask) -> dict:
@@ -92,7 +84,7 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
   surface = np.asarray(projection.valid_depth(complete, sensor))
   completion = surface & ~valid_obs
   covered = completion if renders_drop is None else completion & ~np.asarray(renders_drop, bool)
-  pred = _metric_depth(inv_depth, sensor)
+  pred = np.asarray(projection.complete_depth(inv_depth, sensor), np.float64)
   m = np.clip(np.asarray(measurability, np.float64), 0.0, 1.0)
   truth = 1.0 - np.asarray(drop_prob, np.float64)
   returned = valid_obs.astype(np.float64)
