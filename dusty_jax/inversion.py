@@ -118,8 +118,24 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
     leading batch axis dropped if ``scan`` was 2-D. A scan without any valid
     pixel gets a defined result (the search does not move it) and a warning.
   """
+  if not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
+    raise ValueError(f'num_steps={num_steps!r}: must be a whole number >= 1')
+  sampling.check_params(params)
   scan = jnp.asarray(scan, jnp.float32)
+  if scan.ndim not in (2, 3):
+    raise ValueError(f'scan of shape {scan.shape}: expected (H, W) or (B, H, W)')
+  if not isinstance(scan, jax.core.Tracer):
+    finite = np.asarray(scan)[np.isfinite(np.asarray(scan))]
+    if finite.size and (finite.min() < ALPHA - 1e-6 or finite.max() > 1.0 + 1e-6):
+      raise ValueError(
+          f'scan values lie in [{finite.min():.4g}, {finite.max():.4g}], outside the '
+          'normalised inverse depth [-1, 1] that invert() takes (metres given by '
+          'mistake?); encode metric depth with dusty_jax.projection.encode(depth, '
+          'params.sensor), which also marks 0 / out-of-range depths as drops')
   single = scan.ndim == 2
+  if mask is not None and np.shape(mask) != scan.shape:
+    raise ValueError(f'mask of shape {np.shape(mask)} does not match the scan '
+                     f'{scan.shape}')
   if single:
     scan = scan[None]
     mask = None if mask is None else jnp.asarray(mask)[None]
@@ -133,7 +149,7 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
     if empty.size:
       warnings.warn(f'scans {empty.tolist()} have no valid pixel: nothing to '
                     'fit, their result is the initial latent', stacklevel=2)
-  key = jax.random.key(0) if key is None else key
+  key = sampling.as_key(key)
   if key.shape == (len(scans),):
     keys = key
   elif key.shape == ():

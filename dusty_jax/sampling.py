@@ -6,6 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from dusty_jax import models, projection
 
@@ -40,12 +41,46 @@ def generate(params: models.GeneratorParams, z, key, train: bool = False,
   return out
 
 
-@functools.partial(jax.jit, static_argnames=('num', 'impl'))
+def as_key(key, what: str = 'key'):
+  """A typed PRNG key (array); legacy uint32 keys are wrapped, anything
+  else is refused with a message."""
+  if key is None:
+    return jax.random.key(0)
+  if isinstance(key, (int, np.integer)):
+    raise TypeError(f'{what}: got the int {key}; pass jax.random.key({key})')
+  key = jnp.asarray(key) if not hasattr(key, 'dtype') else key
+  if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+    return key
+  if key.dtype == jnp.uint32 and key.ndim >= 1 and key.shape[-1] == 2:
+    return jax.random.wrap_key_data(key)  # legacy jax.random.PRNGKey(...)
+  raise TypeError(f'{what}: expected a key from jax.random.key(seed), got an '
+                  f'array of dtype {key.dtype} and shape {key.shape}')
+
+
+def check_params(params: models.GeneratorParams):
+  want = (2,) + tuple(params.sensor.shape)
+  if tuple(np.shape(params.angles)) != want:
+    raise ValueError(f'angles of shape {tuple(np.shape(params.angles))} do not match '
+                     f'the generator\'s sensor {params.sensor.name!r}: expected {want}')
+
+
 def sample(params: models.GeneratorParams, key, num: int, impl: str | None = None):
   """Draws ``num`` scans: z ~ N(0, I), test-time Gumbel sampling.
 
+  ``key``: from ``jax.random.key`` (a legacy ``PRNGKey`` is accepted).
   Returns the dict of :func:`generate`.
   """
+  if not isinstance(num, (int, np.integer)) or num < 1:
+    raise ValueError(f'num={num!r}: the number of scans must be a whole number >= 1')
+  check_params(params)
+  key = as_key(key)
+  if key.shape != ():
+    raise ValueError(f'key: expected one key, got shape {key.shape}')
+  return _sample(params, key, int(num), impl)
+
+
+@functools.partial(jax.jit, static_argnames=('num', 'impl'))
+def _sample(params, key, num, impl):
   kz, kmask = jax.random.split(key)
   z = jax.random.normal(kz, (num, params.latent_dim))
   return generate(params, z, kmask, impl=impl)

@@ -171,3 +171,32 @@ def test_render_drops_on_clean_scan(gen):
   assert abs(m.mean() - float(np.asarray(out['measurability']).mean())) < 0.02
   single = inversion.render_drops(gen, complete[0], num_steps=5)
   assert single['scans'].shape == (1,) + gen.sensor.shape
+
+
+def test_bad_inputs_get_clear_errors(gen, tiny):
+  t = _targets(gen, n=1)[0]
+  depth, _ = projection.decode(t, gen.sensor)
+  with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*projection\.encode'):
+    inversion.invert(gen, depth, num_steps=2)  # metres by mistake
+  with pytest.raises(ValueError, match='num_steps'):
+    inversion.invert(gen, t, num_steps=0)
+  with pytest.raises(ValueError, match='mask of shape'):
+    inversion.invert(gen, t, mask=np.ones((3, 3), bool), num_steps=2)
+  with pytest.raises(TypeError, match=r'jax\.random\.key\(3\)'):
+    inversion.invert(gen, t, key=3, num_steps=2)
+  with pytest.raises(ValueError, match='num=-1'):
+    sampling.sample(gen, jax.random.key(0), -1)
+  other = gen.replace(angles=jnp.zeros((2, 8, 8)))
+  with pytest.raises(ValueError, match='angles of shape'):
+    sampling.sample(other, jax.random.key(0), 2)
+
+
+def test_legacy_prng_key_is_one_key(gen):
+  """A legacy PRNGKey(0) means the typed key(0), not two per-scan keys."""
+  t = _targets(gen, n=2)[0]
+  a = inversion.invert(gen, t, key=jax.random.PRNGKey(0), num_steps=3)
+  b = inversion.invert(gen, t, key=jax.random.key(0), num_steps=3)
+  np.testing.assert_array_equal(np.asarray(a['latent']), np.asarray(b['latent']))
+  s1 = sampling.sample(gen, jax.random.PRNGKey(4), 2)
+  s2 = sampling.sample(gen, jax.random.key(4), 2)
+  np.testing.assert_array_equal(np.asarray(s1['scan']), np.asarray(s2['scan']))
