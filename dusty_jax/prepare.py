@@ -3,7 +3,11 @@
     python -m dusty_jax.prepare --dataset kitti --root /data/kitti --out data/kitti
 
 One unreadable or malformed scan is reported and skipped, with a count at the
-end; it never stops the conversion or drops silently.
+end; it never stops the conversion or drops silently. So is a scan with far
+too few points to be a LiDAR scan (fewer than MIN_VALID_FRACTION of its
+pixels valid, or returns on fewer than MIN_RING_FRACTION of its rings).
+Arguments are checked before any work; a split that now yields no scan has
+its old array removed (said so), and a run that finds no scan at all fails.
 """
 
 from __future__ import annotations
@@ -22,6 +26,21 @@ from dusty_jax.sensor import SensorSpec, get_sensor
 
 READERS = {'kitti': kitti, 'mpo': mpo}
 SPLITS = ('train', 'val', 'test')
+MIN_VALID_FRACTION = 0.05  # a real scan returns on most of its pixels
+MIN_RING_FRACTION = 0.25
+
+
+def junk_reason(depth, sensor: SensorSpec) -> str | None:
+  """Why an unfolded scan is too sparse to train on, or None."""
+  valid = np.asarray(projection.valid_depth(depth, sensor))
+  frac = valid.mean()
+  rings = int(valid.any(axis=1).sum())
+  if frac < MIN_VALID_FRACTION:
+    return (f'only {valid.sum()} valid pixels ({100 * frac:.2f}% < '
+            f'{100 * MIN_VALID_FRACTION:.0f}%): not a full LiDAR scan')
+  if rings < MIN_RING_FRACTION * sensor.height:
+    return f'returns on only {rings} of {sensor.height} rings'
+  return None
 
 
 def convert_split(paths, load, sensor: SensorSpec, angle_acc=None,
@@ -43,6 +62,11 @@ def convert_split(paths, load, sensor: SensorSpec, angle_acc=None,
       skipped.append((path, str(e)))
       log(f'skipped: {e}')
       continue
+    reason = junk_reason(depth, sensor)
+    if reason:
+      skipped.append((path, reason))
+      log(f'skipped: {path}: {reason}')
+      continue
     depths.append(depth)
     if angle_acc is not None:
       angle_acc.add(xyz)
@@ -56,6 +80,9 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
   """Prepares every split of ``dataset`` under ``root`` into ``out``."""
   if dataset not in READERS:
     raise ValueError(f'unknown dataset {dataset!r}; known: {sorted(READERS)}')
+  unknown = [s for s in splits if s not in SPLITS]
+  if unknown or not splits:
+    raise ValueError(f'unknown splits {unknown}; known: {list(SPLITS)}')
   if not os.path.isdir(root):
     raise FileNotFoundError(f'{root}: no such directory')
   reader = READERS[dataset]
@@ -64,22 +91,36 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
   meta = {'dataset': dataset, 'sensor': sensor.name, 'shape': list(sensor.shape),
           'splits': {}, 'skipped': {}}
   acc = projection.AngleAccumulator(sensor)
+  listed = {split: reader.list_split(root, split) for split in splits}
+  if not any(listed.values()):
+    raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '
+                            f'{list(splits)} (is this the dataset root?)')
   for split in splits:
-    paths = reader.list_split(root, split)
-    if not paths:
-      log(f'{split}: no files found, split not written')
-      continue
+    paths = listed[split]
     depth, skipped = convert_split(
         paths, reader.load_scan, sensor,
         angle_acc=acc if split == 'train' else None, desc=split, log=log)
+    target = arrays.split_path(out, split)
     if len(depth):
-      arrays.save_array(arrays.split_path(out, split), depth)
+      arrays.save_array(target, depth)
+    elif os.path.isfile(target):
+      os.remove(target)  # a stale array from an earlier run must not be used
+      log(f'{split}: removed the old {target} (this run found no scan for it)')
+    if not paths:
+      log(f'{split}: no files found, split not written')
     meta['splits'][split] = int(len(depth))
     meta['skipped'][split] = [{'path': p, 'reason': r} for p, r in skipped]
     log(f'{split}: {len(depth)} scans written, {len(skipped)} skipped')
+  angles = os.path.join(out, arrays.ANGLES)
   if acc.count.sum():
-    arrays.save_array(os.path.join(out, arrays.ANGLES), acc.result())
+    arrays.save_array(angles, acc.result())
+  elif 'train' in splits and os.path.isfile(angles):
+    os.remove(angles)
+    log(f'removed the old {angles} (no training scan to estimate it from)')
   arrays.write_meta(out, meta)
+  if not sum(meta['splits'].values()):
+    raise ValueError(f'{root}: every scan file was skipped; nothing prepared '
+                     f'(see the reasons above)')
   return meta
 
 

@@ -97,3 +97,34 @@ def test_load_split_shape_mismatch(tmp_path, kitti):
     arrays.load_split(str(tmp_path), 'train', kitti)
   with pytest.raises(FileNotFoundError, match='dusty_jax.prepare'):
     arrays.load_split(str(tmp_path), 'val', kitti)
+
+
+def test_prepare_checks_arguments_before_any_work(kitti, tmp_path):
+  root, out = str(tmp_path / 'kitti'), tmp_path / 'out'
+  _kitti_tree(root, kitti, seqs=(('00', 1),))
+  with pytest.raises(ValueError, match=r"unknown splits \['vall'\]"):
+    prepare.prepare('kitti', root, str(out), splits=('train', 'vall'))
+  assert not out.exists()
+  os.makedirs(tmp_path / 'empty' / 'sequences' / '00' / 'velodyne')
+  with pytest.raises(FileNotFoundError, match='no kitti scan files'):
+    prepare.prepare('kitti', str(tmp_path / 'empty'), str(out))
+
+
+def test_prepare_removes_stale_splits_and_skips_junk(kitti, tmp_path):
+  root, out = str(tmp_path / 'kitti'), str(tmp_path / 'out')
+  _kitti_tree(root, kitti, seqs=(('00', 2), ('08', 1)))
+  prepare.prepare('kitti', root, out, log=lambda m: None)
+  assert os.path.isfile(arrays.split_path(out, 'val'))
+  # Now the val sequence holds only junk: 8 random points, 1000 at the origin.
+  val = os.path.join(root, 'sequences', '08', 'velodyne')
+  rng = np.random.default_rng(0)
+  kitti_io.write_bin(os.path.join(val, '000000.bin'),
+                     rng.uniform(-20, 20, (8, 4)).astype(np.float32))
+  kitti_io.write_bin(os.path.join(val, '000001.bin'), np.zeros((1000, 4), np.float32))
+  logs = []
+  meta = prepare.prepare('kitti', root, out, log=logs.append)
+  assert meta['splits']['val'] == 0 and len(meta['skipped']['val']) == 2
+  assert not os.path.isfile(arrays.split_path(out, 'val'))
+  assert any('removed the old' in l for l in logs)
+  assert all('valid pixels' in s['reason'] and 'not a full LiDAR scan' in s['reason']
+             for s in meta['skipped']['val'])
