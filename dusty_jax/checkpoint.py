@@ -11,6 +11,7 @@ import ml_collections
 import orbax.checkpoint as ocp
 
 CONFIG_FILE = 'config.json'
+ANGLES_FILE = 'angles.npy'  # the same name as in a prepared dataset
 
 
 def manager(workdir: str, keep: int = 3, interval: int = 1) -> ocp.CheckpointManager:
@@ -69,6 +70,14 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
   return target, None
 
 
+def save_angles(workdir: str, angles):
+  import numpy as np
+  os.makedirs(workdir, exist_ok=True)
+  tmp = os.path.join(workdir, ANGLES_FILE + '.tmp.npy')
+  np.save(tmp, np.asarray(angles, np.float32))
+  os.replace(tmp, os.path.join(workdir, ANGLES_FILE))
+
+
 def save_config(workdir: str, config):
   os.makedirs(workdir, exist_ok=True)
   with open(os.path.join(workdir, CONFIG_FILE), 'w') as f:
@@ -85,12 +94,18 @@ def load_config(workdir: str) -> ml_collections.ConfigDict:
     return ml_collections.ConfigDict(json.load(f))
 
 
-def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True):
+def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True,
+                    config: str | None = None, angles: str | None = None):
   """(GeneratorParams, config) of a training run: the EMA generator by default.
 
   Everything ``sample`` and ``invert`` need: the generator's variables, the
-  run's sensor and model, and the dataset's angle table.
+  run's sensor and model, and the dataset's angle table. ``workdir`` may
+  also be one of the authors' ``.pth`` checkpoints (see authors.py), with
+  ``config`` their yaml (default: found beside it) and optional ``angles``.
   """
+  if os.path.isfile(workdir):
+    from dusty_jax import authors
+    return authors.load(workdir, config=config, ema=ema, angles=angles)
   from dusty_jax import sensor as sensor_lib, trainer
   from dusty_jax.data import arrays, pipeline
   config = load_config(workdir)
@@ -107,11 +122,15 @@ def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True):
                             f'steps: {sorted(mngr.all_steps())}')
   else:
     state = restore(mngr, step, target)
-  try:
-    angles = arrays.load_angles(pipeline.dataset_dir(config, sensor, log=lambda m: None),
-                                sensor)
-  except FileNotFoundError:
-    angles = sensor.nominal_angles()
+  if os.path.isfile(os.path.join(workdir, ANGLES_FILE)):
+    # Written by training at its start: a copied run needs no dataset.
+    angles = arrays.load_angles(workdir, sensor)
+  else:  # runs written before the run kept its own angle table
+    try:
+      angles = arrays.load_angles(pipeline.dataset_dir(config, sensor, log=lambda m: None),
+                                  sensor)
+    except FileNotFoundError:
+      angles = sensor.nominal_angles()
   tolerance = config.get('tolerance', 0.0)
   variables = state.ema_params if ema else state.g_params
   return trainer.generator_bundle(setup, variables, angles, tolerance), config

@@ -285,6 +285,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
 
   if is_main:
     checkpoint.save_config(workdir, config)
+    checkpoint.save_angles(workdir, angles)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
