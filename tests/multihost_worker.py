@@ -15,8 +15,13 @@ import numpy as np  # noqa: E402
 
 def main():
   port, pid, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+  # Generous timeouts: on a loaded 2-core machine one process may compile
+  # for minutes while the other waits at a barrier.
   jax.distributed.initialize(f'127.0.0.1:{port}', num_processes=2,
-                             process_id=pid, local_device_ids=[0])
+                             process_id=pid, local_device_ids=[0],
+                             initialization_timeout=900,
+                             heartbeat_timeout_seconds=900,
+                             shutdown_timeout_seconds=900)
   sys.path.insert(0, os.path.dirname(__file__))
   from train_helpers import run_steps
   params = run_steps(num_steps=2)
