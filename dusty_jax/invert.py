@@ -45,8 +45,12 @@ TABLE_COLUMNS = (('cd', 'CD x1e4', 1e4), ('abs_rel', 'AbsRel', 1),
                  ('delta2', 'd<1.25^2 %', 100), ('delta3', 'd<1.25^3 %', 100))
 
 
-def read_inputs(path: str, sensor):
-  """[(name, metric depth (H, W))] from a file or a directory of files."""
+def read_inputs(path: str, sensor, log=print):
+  """[(name, metric depth (H, W))] from a file or a directory of files.
+
+  A file that cannot be read is reported and skipped (and counted by the
+  caller), as prepare does; only a run with no readable file fails.
+  """
   from dusty_jax.data import kitti
   if os.path.isdir(path):
     files = sorted(os.path.join(path, f) for f in os.listdir(path)
@@ -57,21 +61,30 @@ def read_inputs(path: str, sensor):
     files = [path]
   else:
     raise FileNotFoundError(f'{path}: no such file or directory')
-  out = []
+  out, skipped = [], []
   for f in files:
     stem = os.path.splitext(os.path.basename(f))[0]
-    if f.endswith('.bin'):
-      depth, _ = kitti.load_scan(f, sensor)
-      out.append((stem, depth))
+    try:
+      if f.endswith('.bin'):
+        depth, _ = kitti.load_scan(f, sensor)
+        out.append((stem, depth))
+        continue
+      arr = np.load(f, allow_pickle=False)
+      if arr.shape[-2:] != sensor.shape or arr.ndim not in (2, 3):
+        raise ValueError(f'{f}: expected metric depth of shape (H, W) or '
+                         f'(N, H, W) with H, W = {sensor.shape}, got {arr.shape}')
+    except (ValueError, OSError) as e:
+      skipped.append((f, str(e)))
+      log(f'skipped: {e}')
       continue
-    arr = np.load(f, allow_pickle=False)
-    if arr.shape[-2:] != sensor.shape or arr.ndim not in (2, 3):
-      raise ValueError(f'{f}: expected metric depth of shape (H, W) or '
-                       f'(N, H, W) with H, W = {sensor.shape}, got {arr.shape}')
     if arr.ndim == 2:
       out.append((stem, arr))
     else:
       out += [(f'{stem}_{i:05d}', a) for i, a in enumerate(arr)]
+  if not out:
+    raise ValueError(f'{path}: none of {len(files)} input files could be read')
+  if skipped:
+    log(f'{len(skipped)} of {len(files)} input files skipped')
   return out
 
 

@@ -200,3 +200,20 @@ def test_legacy_prng_key_is_one_key(gen):
   s1 = sampling.sample(gen, jax.random.PRNGKey(4), 2)
   s2 = sampling.sample(gen, jax.random.key(4), 2)
   np.testing.assert_array_equal(np.asarray(s1['scan']), np.asarray(s2['scan']))
+
+
+def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
+  import importlib
+  cli = importlib.import_module('dusty_jax.invert')
+  good = np.full(tiny.shape, 10.0, np.float32)
+  np.save(tmp_path / 'a.npy', good)
+  np.save(tmp_path / 'b.npy', np.zeros((3, 3), np.float32))  # wrong shape
+  (tmp_path / 'c.bin').write_bytes(b'\0' * 20)  # not whole points
+  logs = []
+  items = cli.read_inputs(str(tmp_path), tiny, log=logs.append)
+  assert [n for n, _ in items] == ['a']
+  assert any('2 of 3 input files skipped' in l for l in logs)
+  assert any('b.npy' in l for l in logs) and any('c.bin' in l for l in logs)
+  (tmp_path / 'a.npy').unlink()
+  with pytest.raises(ValueError, match='none of 2 input files'):
+    cli.read_inputs(str(tmp_path), tiny, log=logs.append)
