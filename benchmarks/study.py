@@ -36,8 +36,9 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODELS = ('baseline', 'dusty1', 'dusty2')
-LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II'}
+MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug')
+LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
+          'dusty1_noaug': 'DUSty-I, no DiffAugment'}
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
 TRADE_ITERS = (50, 100, 200, 500, 1000)
 KITTI_SAMPLE = os.path.join(HERE, '..', '..', 'shared', 'data', 'kitti-sample')
@@ -48,7 +49,8 @@ def parse_args(argv=None):
   p.add_argument('--workdir', default='runs/study')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   p.add_argument('--scale', default='cpu', choices=('cpu', 'paper'))
-  p.add_argument('--models', default=','.join(MODELS))
+  p.add_argument('--models', default=','.join(MODELS[:3]),
+                 help=f'of {MODELS}; dusty1_noaug is the diagnosis variant')
   p.add_argument('--steps', type=int, default=None, help='override num_steps')
   p.add_argument('--train-only', action='store_true')
   p.add_argument('--eval-only', action='store_true')
@@ -73,7 +75,7 @@ def parse_args(argv=None):
 
 def model_config(model, a):
   from dusty_jax import configs
-  c = configs.study(model, a.scale)
+  c = configs.study(model, a.scale)  # 'dusty1_noaug': see configs.study
   if a.steps:
     c.num_steps = a.steps
   return c
@@ -169,7 +171,7 @@ def synthesis(params, config, split, a):
           'num': n, 'points': a.points, 'seeds': a.seeds, 'tolerance': tol}
 
 
-def disentangle(params, split, a):
+def disentangle(params, split, a, name):
   import jax
   from dusty_jax import projection
   from dusty_jax.metrics import ground_truth
@@ -177,17 +179,17 @@ def disentangle(params, split, a):
   idx = np.arange(min(a.num_invert, len(split('test'))))
   obs, comp, prob = (split('test', k)[idx] for k in ('', 'complete', 'drop_prob'))
   res = invert_batched(params, np.asarray(projection.encode(obs, sensor)),
-                       a.invert_steps, jax.random.key(0), desc=f'{params.model}: inverting')
+                       a.invert_steps, jax.random.key(0), desc=f'{name}: inverting')
   out = ground_truth.disentanglement(
       sensor, res['inv_depth'], res['measurability'], obs, comp, prob,
       renders_drop=renders_drop(params, res['inv_depth']))
   out.update(num=len(idx), steps=a.invert_steps)
-  np.savez_compressed(os.path.join(a.workdir, params.model, 'study_inversion.npz'),
+  np.savez_compressed(os.path.join(a.workdir, name, 'study_inversion.npz'),
                       inv_depth=res['inv_depth'][:8], measurability=res['measurability'][:8])
   return out
 
 
-def restoration(params, split, a):
+def restoration(params, split, a, name):
   import importlib
   import jax
   from dusty_jax import corrupt, projection
@@ -202,7 +204,7 @@ def restoration(params, split, a):
     key = jax.random.key(7)
     target = np.asarray(corrupt.apply(spec, key, clean, sensor))
     res = invert_batched(params, target, a.invert_steps, key,
-                         desc=f'{params.model}: {spec}')
+                         desc=f'{name}: {spec}')
     errs = invert_cli.evaluate_batch(params, obs, res, np.asarray(params.angles))
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
     pred = np.asarray(projection.complete_depth(res['inv_depth'], sensor), np.float64)
@@ -213,7 +215,7 @@ def restoration(params, split, a):
                  'vs_complete': ground_truth.depth_errors(pred, comp, covered),
                  'coverage_complete': float(covered.sum() / max(surface.sum(), 1))}
     if spec == CORRUPTIONS[0]:
-      np.savez_compressed(os.path.join(a.workdir, params.model, 'study_restore.npz'),
+      np.savez_compressed(os.path.join(a.workdir, name, 'study_restore.npz'),
                           clean=clean[:4], target=target[:4],
                           inv_depth=res['inv_depth'][:4],
                           measurability=res['measurability'][:4], complete=comp[:4])
@@ -456,8 +458,8 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
       '',
       '![samples](study_samples.png)',
       '',
-      'Columns: baseline, DUSty-I, DUSty-II. Per sample three rows: the scan x,'
-      ' x_tilde, the measurability (baseline: 1).',
+      'Columns: ' + ', '.join(LABELS[m] for m in results) + '. Per sample three'
+      ' rows: the scan x, x_tilde, the measurability (baseline: 1).',
   ]
   if kitti_file:
     lines += ['', '## A real KITTI scan restored by the simulated-data DUSty-I', '',
@@ -507,8 +509,8 @@ def main(argv=None):
     params_by_model[m] = params
     results[m] = {
         'synthesis': syn,
-        'disentangle': cache.get('disentangle', lambda: disentangle(params, split, a)),
-        'restoration': cache.get('restoration', lambda: restoration(params, split, a)),
+        'disentangle': cache.get('disentangle', lambda: disentangle(params, split, a, m)),
+        'restoration': cache.get('restoration', lambda: restoration(params, split, a, m)),
     }
     results[m]['seconds'] = cache.data['seconds']
   key = 'dusty1' if 'dusty1' in models else models[0]
@@ -533,9 +535,9 @@ def main(argv=None):
   print(text)
   if a.export:
     from dusty_jax import pretrained
-    for m in ('dusty1', 'baseline'):
+    for m in ('dusty1', 'baseline', 'dusty1_noaug'):
       if m in params_by_model:
-        path = pretrained.export(params_by_model[m], f'sim-{m}',
+        path = pretrained.export(params_by_model[m], f'sim-{m.replace("_", "-")}',
                                  source=f'benchmarks/study.py --scale {a.scale}')
         print(f'exported {path} ({os.path.getsize(path) / 1e6:.2f} MB)')
 

@@ -123,10 +123,15 @@ STUDY_SCALES = ('cpu', 'paper')
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
+  """``model``: baseline, dusty1, dusty2, or dusty1_noaug (DUSty-I without
+  DiffAugment: at the CPU scale the discriminator cannot see point-drops
+  through the augmentation, see benchmarks/results/study.md)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()
-  c.model = model
+  c.model = model.split('_')[0]
+  if model.endswith('_noaug'):
+    c.augment = ''
   c.sensor.preset = 'kitti'
   c.data.dir = ''
   c.data.num_synthetic = 2000
