@@ -136,7 +136,7 @@ def test_nan_stops_training_keeping_last_good_checkpoint(smoke_run, tmp_path):
   config.num_steps = 2
   trainer.train_and_evaluate(config, other, log=lambda m: None)
   config.num_steps = 6
-  config.lr = float('nan')  # poisons every update from step 3 on.
+  config.lr = 1e38  # from step 3 on, updates overflow float32: inf, then NaN.
   with pytest.raises(trainer.NonFiniteLossError, match='non-finite training metrics'):
     trainer.train_and_evaluate(config, other, log=lambda m: None)
   assert sorted(os.listdir(os.path.join(other, 'checkpoints'))) == ['2']
