@@ -426,7 +426,7 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
       ' drops in its only output). Measurability: ECE against the true return'
       ' probability; Brier and ROC AUC against the observed returns; "surf." on'
       ' pixels with a surface in range only. The baseline\'s measurability is'
-      ' its rendered validity.',
+      ' 1 everywhere (it has none).',
       '',
       md_table(['model', 'compl. MAE m', 'compl. AbsRel', 'coverage %', 'fit MAE m',
                 'fit AbsRel', 'ECE', 'ECE surf.', 'Brier', 'Brier surf.', 'AUC',
