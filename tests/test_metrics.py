@@ -212,3 +212,91 @@ def test_reliability_and_ece():
   assert 0.15 < biased['ece'] < 0.2
   with pytest.raises(ValueError, match='at least one pixel'):
     calibration.reliability(truth, truth, mask=np.zeros_like(truth, bool))
+
+
+# --- protocol='paper': the authors' computation, checked against small
+# independent computations written from its description ----------------------
+
+def _fps_kernel_ref(points, k, threads):
+  """The authors' FPS kernel emulated thread by thread: start at index 0;
+  each thread walks its strided indices, skipping points with squared norm
+  <= 1e-3, keeps its strictly largest running distance (first on ties);
+  then a pairwise tree reduction where the lower slot keeps its pick unless
+  the upper one is strictly larger."""
+  n = len(points)
+  temp = np.full(n, 1e10, np.float32)
+  mag = (points.astype(np.float32) ** 2).sum(-1)
+  idx = [0]
+  for _ in range(1, k):
+    last = points[idx[-1]]
+    best = np.full(threads, -1.0, np.float32)
+    besti = np.zeros(threads, np.int64)
+    for t in range(threads):
+      for j in range(t, n, threads):
+        if mag[j] <= 1e-3:
+          continue
+        d2 = min(np.float32(((points[j] - last) ** 2).sum()), temp[j])
+        temp[j] = d2
+        if d2 > best[t]:
+          best[t], besti[t] = d2, j
+    s = threads // 2
+    while s >= 1:
+      for t in range(s):
+        if best[t + s] > best[t]:
+          best[t], besti[t] = best[t + s], besti[t + s]
+      s //= 2
+    idx.append(int(besti[0]))
+  return np.array(idx)
+
+
+def _fps_with_threads(points, k, threads):
+  """clouds' paper kernel with another thread count (as for N < 512)."""
+  import unittest.mock
+  with unittest.mock.patch.object(clouds, 'PAPER_MAX_THREADS', threads):
+    clouds._fps_chunk.clear_cache()
+    try:
+      valid = (points ** 2).sum(-1) > np.float32(clouds.PAPER_MIN_SQUARED_NORM)
+      return np.asarray(clouds._fps_chunk(points, valid, k, True))[0]
+    finally:
+      clouds._fps_chunk.clear_cache()
+
+
+def test_fps_paper_matches_kernel_emulation():
+  rng = np.random.default_rng(20)
+  n, k = 96, 40
+  pts = (rng.normal(size=(3, n, 3)) * 0.3).astype(np.float32)
+  valid = rng.uniform(size=(3, n)) > 0.3
+  valid[:, 0] = False  # pixel 0 dropped: the origin is the first sample
+  valid[1, 0] = True   # ... except in cloud 1
+  pts[:, 5] = [0.01, 0.01, 0.01]  # valid but within 3.79 m: never picked
+  valid[:, 5] = True
+  for a, b in ((7, 40), (12, 77), (33, 90), (17, 81)):  # exact duplicates:
+    pts[:, b] = pts[:, a]                              # ties across threads
+    valid[:, [a, b]] = True
+  valid[2] = False  # 3 points to pick beyond 3.79 m: the rest are ties at 0
+  valid[2, [3, 5, 50, 70]] = True
+  zeroed = np.where(valid[..., None], pts, 0.0).astype(np.float32)
+  for threads in (8, 32):  # other thread counts, so ties cross threads
+    for i in range(3):
+      np.testing.assert_array_equal(_fps_with_threads(zeroed[i:i + 1], k, threads),
+                                    _fps_kernel_ref(zeroed[i], k, threads))
+  got = np.asarray(clouds.farthest_point_indices(zeroed, valid, k, protocol='paper'))
+  for i in range(3):
+    np.testing.assert_array_equal(got[i], _fps_kernel_ref(zeroed[i], k, 64))
+  assert (got[:, 0] == 0).all() and not (got[:, 1:] == 5).any()
+  sample = np.asarray(clouds.farthest_point_sample(pts, valid, k, protocol='paper'))
+  np.testing.assert_array_equal(sample[0, 0], 0.0)  # the origin, from pixel 0
+  np.testing.assert_array_equal(sample[1, 0], pts[1, 0])
+  assert set(got[2].tolist()) == {0, 3, 50, 70}
+  # The reference protocol starts at the first valid pixel and keeps near points.
+  ref = np.asarray(clouds.farthest_point_indices(pts, valid, k))
+  assert ref[0, 0] == np.flatnonzero(valid[0])[0] and valid[0][ref[0]].all()
+  assert set(ref[2].tolist()) == {3, 5, 50, 70}
+
+
+def test_fps_paper_thread_count_and_tie_order():
+  assert [clouds.paper_threads(n) for n in (1, 2, 3, 100, 512, 1023, 16384)] == \
+      [1, 2, 2, 64, 512, 512, 512]
+  # 8 threads: slots merge 4 -> 0, 2 -> 0, 1 -> 0, so thread 4 outranks 1.
+  order = clouds.paper_tie_order(16)
+  assert order.tolist() == [0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15]
