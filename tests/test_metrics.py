@@ -300,3 +300,108 @@ def test_fps_paper_thread_count_and_tie_order():
   # 8 threads: slots merge 4 -> 0, 2 -> 0, 1 -> 0, so thread 4 outranks 1.
   order = clouds.paper_tie_order(16)
   assert order.tolist() == [0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15]
+
+
+def _jsd_paper_ref(p, q, eps=1e-8):
+  """The authors' JSD as described: their entropy adds eps to its argument
+  in place, so the mixture is formed from already shifted vectors."""
+  def entropy(v):  # mutates v, as theirs does
+    v += eps
+    return -np.sum(v * np.log2(v))
+  p = np.asarray(p, np.float64) / np.sum(p)
+  q = np.asarray(q, np.float64) / np.sum(q)
+  e_p, e_q = entropy(p), entropy(q)
+  return entropy((p + q) / 2) - (e_p + e_q) / 2
+
+
+def test_jsd_paper_eps_bias():
+  p = np.array([3.0, 0, 1, 0, 0, 6])
+  q = np.array([0.0, 2, 1, 0, 4, 1])
+  got = point_sets.jsd_from_counts(p, q, 'paper')
+  assert got == pytest.approx(_jsd_paper_ref(p, q), rel=1e-12)
+  assert abs(got - point_sets.jsd_from_counts(p, q)) > 1e-8
+  # Identical sets: 0 by the definition, a bias per empty cell in theirs.
+  rng = np.random.default_rng(21)
+  a = rng.normal(0, 0.3, (4, 300, 3)).astype(np.float32)
+  counts = point_sets.occupancy(a)
+  empty = int((counts == 0).sum())
+  per_cell = -2e-8 - 1e-8 * np.log2(1e-8)
+  assert point_sets.jsd(a, a) == pytest.approx(0.0, abs=1e-12)
+  bias = point_sets.jsd(a, a, protocol='paper')
+  assert bias == pytest.approx(_jsd_paper_ref(counts, counts), rel=1e-9)
+  assert bias == pytest.approx(empty * per_cell, rel=0.05)  # + occupied cells
+  assert 0.0015 < bias < 0.003
+  with pytest.raises(ValueError, match='unknown protocol'):
+    point_sets.jsd_from_counts(p, q, 'papers')
+
+
+def test_swd_paper_pyramid_is_shifted_one_pixel():
+  rng = np.random.default_rng(22)
+  x = rng.normal(size=(2, 8, 16)).astype(np.float32)
+  k = np.outer([1, 4, 6, 4, 1], [1, 4, 6, 4, 1]) / 256.0
+  up = np.zeros((2, 16, 32), np.float32)
+  up[:, 1::2, 1::2] = x  # the coarse pixels at odd positions
+  want = scipy.ndimage.convolve(up, 4 * k[None], mode='mirror')
+  np.testing.assert_allclose(swd.pyr_up(x, shifted=True), want, rtol=1e-5, atol=1e-6)
+  assert not np.allclose(swd.pyr_up(x, shifted=True), swd.pyr_up(x), atol=1e-3)
+  img = rng.normal(size=(2, 32, 64)).astype(np.float32)
+  down = scipy.ndimage.convolve(img, k[None], mode='mirror')[:, ::2, ::2]
+  up = np.zeros_like(img)
+  up[:, 1::2, 1::2] = down
+  band = img - scipy.ndimage.convolve(up, 4 * k[None], mode='mirror')
+  pyr = swd.laplacian_pyramid(img, 2, shifted=True)
+  np.testing.assert_allclose(pyr[0], band, rtol=1e-4, atol=1e-5)
+  np.testing.assert_allclose(pyr[1], down, rtol=1e-5, atol=1e-6)
+
+
+def test_swd_paper_patches_shared_by_the_batch():
+  import jax
+  b, h, w = 5, 12, 20
+  pos = np.arange(h)[:, None] * 100 + np.arange(w)[None]  # value encodes position
+  imgs = (pos[None] + 10000 * np.arange(b)[:, None, None]).astype(np.float32)
+  centre = lambda p: (p[:, 24].astype(int) % 10000).reshape(b, -1)  # 7x7: element 24
+  shared = np.asarray(swd.patches(jax.random.key(0), imgs, 32, 7, shared=True))
+  c = centre(shared)
+  assert (c == c[0]).all()  # the same positions in every image
+  assert len(set(c[0].tolist())) == 32  # drawn without replacement
+  assert (c[0] // 100 >= 3).all() and (c[0] // 100 < h - 3).all()
+  assert (c[0] % 100 >= 3).all() and (c[0] % 100 < w - 3).all()
+  np.testing.assert_array_equal(shared[:32, 0], imgs[0][c[0] // 100 - 3, c[0] % 100 - 3])
+  # More patches than windows (6 x 14 here): every window once.
+  every = centre(np.asarray(swd.patches(jax.random.key(1), imgs, 500, 7, shared=True)))
+  assert every.shape == (b, 84) and len(set(every[0].tolist())) == 84
+  own = centre(np.asarray(swd.patches(jax.random.key(0), imgs, 32, 7)))
+  assert not (own == own[0]).all()  # reference: positions drawn per image
+
+
+def test_swd_paper_directions_and_standardisation():
+  import jax
+  rng = np.random.default_rng(23)
+  a = rng.normal(size=(300, 49)).astype(np.float32)
+  b = (rng.normal(size=(300, 49)) * 1.5 + 0.2).astype(np.float32)
+  key = jax.random.key(3)
+  got = float(swd.sliced_wasserstein(key, a, b, 4, 16, paper=True))
+  want = []
+  for k in jax.random.split(key, 4):
+    dirs = np.asarray(jax.random.normal(k, (49, 16)), np.float64)
+    dirs /= dirs.std(axis=0, ddof=1)  # the authors' scaling, not the norm
+    pa, pb = np.sort(a @ dirs, axis=0), np.sort(b @ dirs, axis=0)
+    want.append(np.abs(pa - pb).mean())
+  assert got == pytest.approx(np.mean(want), rel=1e-4)
+  ratio = got / float(swd.sliced_wasserstein(key, a, b, 4, 16))
+  assert 6 < ratio < 8  # about sqrt(49 - 1)
+  d = rng.normal(size=(50, 9)).astype(np.float32)
+  np.testing.assert_allclose(swd.normalise(d, ddof=1),
+                             (d - d.mean()) / (d.std(ddof=1) + 1e-8), rtol=1e-4, atol=1e-5)
+
+
+def test_swd_paper_end_to_end_scale():
+  import jax
+  rng = np.random.default_rng(24)
+  a = rng.normal(size=(16, 32, 64)).astype(np.float32)
+  c = scipy.ndimage.gaussian_filter(rng.normal(size=(16, 32, 64)),
+                                    (0, 2, 2)).astype(np.float32)
+  key = jax.random.key(0)
+  ref = swd.swd(key, a, c, per_image=64)['swd_mean']
+  paper = swd.swd(key, a, c, per_image=64, protocol='paper')['swd_mean']
+  assert 5 < paper / ref < 10

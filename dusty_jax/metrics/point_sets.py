@@ -12,6 +12,15 @@ Given Chamfer matrices between reference clouds R and generated clouds S:
     point counted at its nearest grid point, counts summed over each set
     (latent_3d_points' definition). Clouds in units of 120 m are divided by
     2 first, as the DUSty authors do.
+
+JSD with ``protocol='paper'`` is the DUSty authors' computation: their
+entropy adds eps = 1e-8 to its argument in place, so each set's normalised
+counts are shifted by eps when their own entropy is taken, and the mixture,
+formed afterwards from the shifted vectors, is shifted by eps once more:
+  JSD_paper = H(m + 2 eps) - (H(p + eps) + H(q + eps)) / 2,  m = (p + q) / 2,
+with H(v) = -sum v log2 v over every cell of the grid. A cell empty in both
+sets adds -2 eps - eps log2(eps) = 2.46e-7; with about 10^4 such cells,
+identical sets score about 0.0024 instead of 0.
 """
 
 from __future__ import annotations
@@ -114,16 +123,27 @@ def _entropy2(p):
   return float(-(p * np.log2(p)).sum())
 
 
-def jsd_from_counts(p, q):
+PAPER_JSD_EPS = 1e-8
+
+
+def jsd_from_counts(p, q, protocol: str = 'reference'):
+  """Base-2 JSD between two count vectors (see the module docstring)."""
+  if protocol not in ('reference', 'paper'):
+    raise ValueError(f'unknown protocol {protocol!r}')
   p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
   if p.sum() <= 0 or q.sum() <= 0:
     raise ValueError('JSD needs at least one point in each set')
   p, q = p / p.sum(), q / q.sum()
+  if protocol == 'paper':
+    e = PAPER_JSD_EPS
+    p, q = p + e, q + e
+    return _entropy2((p + q) / 2 + e) - (_entropy2(p) + _entropy2(q)) / 2
   return _entropy2((p + q) / 2) - (_entropy2(p) + _entropy2(q)) / 2
 
 
 def jsd(clouds_a, clouds_b, valid_a=None, valid_b=None,
-        resolution: int = JSD_RESOLUTION, scale: float = 0.5):
+        resolution: int = JSD_RESOLUTION, scale: float = 0.5,
+        protocol: str = 'reference'):
   """Base-2 JSD between the grid occupancies of two sets of clouds."""
   return jsd_from_counts(occupancy(clouds_a, valid_a, resolution, scale),
-                         occupancy(clouds_b, valid_b, resolution, scale))
+                         occupancy(clouds_b, valid_b, resolution, scale), protocol)

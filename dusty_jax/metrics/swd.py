@@ -7,11 +7,21 @@ random unit directions (4 repeats of 128). Levels go from full resolution
 down to a shorter side of 16 (64x256 scans: 3 levels). Returns each level
 and their mean.
 
-Differences from the DUSty authors' code: they divide each random direction
-by the standard deviation of its components instead of its norm, which
-scales every projection by about sqrt(descriptor size) (7 for 7x7 patches
-of one channel), and they take the same patch positions in every image of a
-batch. PGGAN also reports SWD x 1e3; the values here are unscaled.
+PGGAN also reports SWD x 1e3; the values here are unscaled.
+
+``protocol='paper'`` computes as the DUSty authors' code does:
+  * each random direction is divided by the (n-1) standard deviation of its
+    components instead of its norm, which scales every projection by about
+    sqrt(descriptor size - 1) (7 for 7x7 patches of one channel);
+  * the upsampling of the Laplacian pyramid puts each coarse pixel at odd
+    positions (2i+1, 2j+1) of the zero-filled image before the blur, where
+    PGGAN (cv2.pyrUp) puts it at even ones, so every band-pass level is
+    taken against a prediction shifted by one pixel;
+  * one set of patch positions, drawn without replacement among all 7x7
+    windows, is shared by every image of a batch of 128 (per set and
+    level), where PGGAN draws positions for each image;
+  * descriptors are standardised with the (n-1) standard deviation.
+Their random numbers (torch's) are not reproduced, only the computation.
 """
 
 from __future__ import annotations
@@ -38,18 +48,21 @@ def pyr_down(x):
   return _blur(x)[:, ::2, ::2]
 
 
-def pyr_up(x):
+def pyr_up(x, shifted: bool = False):
+  """Zero-filled 2x upsampling and blur; ``shifted``: the authors' odd
+  positions instead of cv2.pyrUp's even ones."""
   b, h, w = x.shape
-  up = jnp.zeros((b, 2 * h, 2 * w), x.dtype).at[:, ::2, ::2].set(x)
+  o = int(shifted)
+  up = jnp.zeros((b, 2 * h, 2 * w), x.dtype).at[:, o::2, o::2].set(x)
   return _blur(up, gain=2.0)  # 2 per axis: 4 in all, as cv2.pyrUp.
 
 
-@functools.partial(jax.jit, static_argnames='levels')
-def laplacian_pyramid(x, levels: int):
+@functools.partial(jax.jit, static_argnames=('levels', 'shifted'))
+def laplacian_pyramid(x, levels: int, shifted: bool = False):
   pyr = [x]
   for _ in range(1, levels):
     down = pyr_down(pyr[-1])
-    pyr[-1] = pyr[-1] - pyr_up(down)
+    pyr[-1] = pyr[-1] - pyr_up(down, shifted)
     pyr.append(down)
   return pyr
 
@@ -58,14 +71,26 @@ def num_levels(shape, min_size: int = 16) -> int:
   return max(int(np.log2(min(shape) // min_size)) + 1, 1)
 
 
-@functools.partial(jax.jit, static_argnames=('per_image', 'size'))
-def patches(key, images, per_image: int = 128, size: int = 7):
-  """(B, H, W) -> (B * per_image, size * size) random patches."""
+@functools.partial(jax.jit, static_argnames=('per_image', 'size', 'shared'))
+def patches(key, images, per_image: int = 128, size: int = 7, shared: bool = False):
+  """(B, H, W) -> (B * per_image, size * size) random patches.
+
+  Positions are drawn for each image (with replacement); with ``shared``,
+  one set of positions without replacement serves every image (at most as
+  many as there are windows).
+  """
   b, h, w = images.shape
   r = size // 2
-  ky, kx = jax.random.split(key)
-  ys = jax.random.randint(ky, (b, per_image), r, h - r)
-  xs = jax.random.randint(kx, (b, per_image), r, w - r)
+  if shared:
+    nh, nw = h - 2 * r, w - 2 * r
+    per_image = min(per_image, nh * nw)
+    pos = jax.random.permutation(key, nh * nw)[:per_image]
+    ys = jnp.broadcast_to(pos // nw + r, (b, per_image))
+    xs = jnp.broadcast_to(pos % nw + r, (b, per_image))
+  else:
+    ky, kx = jax.random.split(key)
+    ys = jax.random.randint(ky, (b, per_image), r, h - r)
+    xs = jax.random.randint(kx, (b, per_image), r, w - r)
   off = jnp.arange(-r, r + 1)
   rows = ys[..., None, None] + off[:, None]
   cols = xs[..., None, None] + off[None, :]
@@ -73,27 +98,43 @@ def patches(key, images, per_image: int = 128, size: int = 7):
   return images[img, rows, cols].reshape(b * per_image, size * size)
 
 
-def normalise(desc):
+def normalise(desc, ddof: int = 0):
   desc = desc - desc.mean()
-  return desc / (desc.std() + 1e-8)  # one channel: one mean and std.
+  return desc / (desc.std(ddof=ddof) + 1e-8)  # one channel: one mean and std.
 
 
-@functools.partial(jax.jit, static_argnames=('repeats', 'per_repeat'))
-def sliced_wasserstein(key, a, b, repeats: int = 4, per_repeat: int = 128):
+@functools.partial(jax.jit, static_argnames=('repeats', 'per_repeat', 'paper'))
+def sliced_wasserstein(key, a, b, repeats: int = 4, per_repeat: int = 128,
+                       paper: bool = False):
   if a.shape != b.shape:
     raise ValueError(f'descriptor sets differ in shape: {a.shape} vs {b.shape}')
   out = []
   for k in jax.random.split(key, repeats):
     dirs = jax.random.normal(k, (a.shape[1], per_repeat))
-    dirs = dirs / jnp.linalg.norm(dirs, axis=0, keepdims=True)
+    if paper:
+      dirs = dirs / jnp.std(dirs, axis=0, ddof=1, keepdims=True)
+    else:
+      dirs = dirs / jnp.linalg.norm(dirs, axis=0, keepdims=True)
     pa, pb = jnp.sort(a @ dirs, axis=0), jnp.sort(b @ dirs, axis=0)
     out.append(jnp.mean(jnp.abs(pa - pb)))
   return jnp.mean(jnp.stack(out))
 
 
+PAPER_BATCH = 128  # images sharing one set of patch positions.
+
+
 def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
-        repeats: int = 4, per_repeat: int = 128, batch: int = 256):
-  """{'swd_<size>': ..., 'swd_mean': ...} between (B, H, W) image sets."""
+        repeats: int = 4, per_repeat: int = 128, batch: int | None = None,
+        protocol: str = 'reference'):
+  """{'swd_<size>': ..., 'swd_mean': ...} between (B, H, W) image sets.
+
+  ``batch``: images per pyramid call (default 256; with ``protocol='paper'``
+  128, the group that shares patch positions).
+  """
+  if protocol not in ('reference', 'paper'):
+    raise ValueError(f'unknown protocol {protocol!r}')
+  paper = protocol == 'paper'
+  batch = batch or (PAPER_BATCH if paper else 256)
   images_a, images_b = jnp.asarray(images_a), jnp.asarray(images_b)
   if images_a.shape[1:] != images_b.shape[1:] or len(images_a) != len(images_b):
     raise ValueError('SWD needs two sets of the same number and shape of images,'
@@ -103,16 +144,17 @@ def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
   kp, kd = jax.random.split(key)
   for s, imgs in enumerate((images_a, images_b)):
     for i in range(0, len(imgs), batch):
-      pyr = laplacian_pyramid(imgs[i:i + batch], levels)
+      pyr = laplacian_pyramid(imgs[i:i + batch], levels, paper)
       for lvl, p in enumerate(pyr):
         k = jax.random.fold_in(jax.random.fold_in(kp, s * 1_000_003 + i), lvl)
-        desc[s][lvl].append(patches(k, p, per_image, size))
+        desc[s][lvl].append(patches(k, p, per_image, size, paper))
   result = {}
+  ddof = int(paper)
   for lvl in range(levels):
-    a = normalise(jnp.concatenate(desc[0][lvl]))
-    b = normalise(jnp.concatenate(desc[1][lvl]))
+    a = normalise(jnp.concatenate(desc[0][lvl]), ddof)
+    b = normalise(jnp.concatenate(desc[1][lvl]), ddof)
     side = min(images_a.shape[1:]) >> lvl
     result[f'swd_{side}'] = float(sliced_wasserstein(
-        jax.random.fold_in(kd, lvl), a, b, repeats, per_repeat))
+        jax.random.fold_in(kd, lvl), a, b, repeats, per_repeat, paper))
   result['swd_mean'] = float(np.mean(list(result.values())))
   return result
