@@ -26,7 +26,7 @@ from dusty_jax.data import synthetic
 from dusty_jax.metrics import protocol
 from dusty_jax.sensor import get_sensor
 
-METRICS = ('jsd', 'cov', 'mmd', 'nna', 'swd')
+METRICS = ('jsd', 'cov', 'mmd', '1nna', 'swd')
 
 
 def main():
@@ -62,11 +62,10 @@ def main():
       ref = pool[:n]
       vals = {m: [] for m in METRICS}
       times = []
-      cache = (None, None)
       for s in range(a.seeds):
         gen = pool[n * (s + 1): n * (s + 2)]
         t = time.perf_counter()
-        m, c = protocol.compare(ref, gen, angles, sensor, p, jax.random.key(s))
+        m = protocol.compare(ref, gen, angles, sensor=sensor, num_points=p, seed=s)
         times.append(time.perf_counter() - t)
         for k in METRICS:
           vals[k].append(m[k])
@@ -105,7 +104,7 @@ def main():
   series = {}
   for p in points:
     rs = [r for r in rows if r['points'] == p and r['measured']]
-    series[f'1-NNA, {p} points'] = ([r['n'] for r in rs], [r['nna_mean'] for r in rs])
+    series[f'1-NNA, {p} points'] = ([r['n'] for r in rs], [r['1nna_mean'] for r in rs])
     series[f'COV, {p} points'] = ([r['n'] for r in rs], [r['cov_mean'] for r in rs])
   writers.line_plot(os.path.join(a.out, 'eval_tradeoff_values.png'), series,
                     'N clouds per set (log)', 'value', logx=True,

@@ -155,18 +155,17 @@ def synthesis(params, config, split, a):
     val = np.asarray(projection.encode(val[protocol.evenly(len(val), n)], sensor))
     tol = evaluate.tune_tolerance(params, val, a.tune_trials, points=a.points)
   rows = {k: [] for k, _, _ in protocol.ROW_SCALES}
-  cache = (None, None)
+  cache = {}
   for seed in range(a.seeds):
     gen = evaluate._sample_scans(params, jax.random.key(1000 + seed), n)
-    m, cache = protocol.compare(ref, gen, params.angles, sensor, a.points,
-                                jax.random.key(seed), tolerance_gen=tol,
-                                d_rr=cache[0], ref=cache[1], progress=True)
+    m = protocol.compare(ref, gen, params.angles, sensor=sensor, num_points=a.points,
+                         seed=seed, tolerance=tol, cache=cache, progress=True)
     for k in rows:
       rows[k].append(float(m[k]))
   train = split('train')
   tr = np.asarray(projection.encode(train[protocol.evenly(len(train), n)], sensor))
-  m, _ = protocol.compare(ref, tr, params.angles, sensor, a.points, jax.random.key(0),
-                          d_rr=cache[0], ref=cache[1])
+  m = protocol.compare(ref, tr, params.angles, sensor=sensor, num_points=a.points,
+                       seed=0, cache=cache)
   return {'rows': rows, 'train_row': {k: float(v) for k, v in m.items()},
           'num': n, 'points': a.points, 'seeds': a.seeds, 'tolerance': tol}
 

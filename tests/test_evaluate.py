@@ -4,29 +4,97 @@ import json
 import os
 import subprocess
 import sys
+import tomllib
 
 import jax
 import numpy as np
+import pytest
 
-from dusty_jax import projection
-from dusty_jax.metrics import protocol
+from dusty_jax import metrics, projection
+from dusty_jax.metrics import chamfer, point_sets, protocol
+
+HERE = os.path.dirname(__file__)
 
 
-def test_protocol_identical_sets(tiny):
-  rng = np.random.default_rng(0)
-  d = rng.uniform(3, 60, (6,) + tiny.shape).astype(np.float32)
+def _scans(sensor, n, seed=0, drop=0.0):
+  rng = np.random.default_rng(seed)
+  d = rng.uniform(3, 60, (n,) + sensor.shape).astype(np.float32)
   d[:, :2] = 0
-  x = np.asarray(projection.encode(d, tiny))
-  m, (d_rr, ref) = protocol.compare(x, x, tiny.nominal_angles(), tiny, 64,
-                                    jax.random.key(0))
+  d[rng.uniform(size=d.shape) < drop] = 0
+  return np.asarray(projection.encode(d, sensor)), d
+
+
+def test_compare_identical_and_separated_sets(tiny):
+  x, d = _scans(tiny, 6)
+  angles = tiny.nominal_angles()
+  cache = {}
+  m = metrics.compare(x, x, angles, sensor=tiny, num_points=64, cache=cache)
+  assert set(m) == {'jsd', 'cov', 'mmd', '1nna', 'swd'}
   assert m['cov'] == 1.0 and m['mmd'] < 1e-7 and abs(m['jsd']) < 1e-12
-  assert d_rr.shape == (6, 6) and ref[0].shape == (6, 64, 3)
+  assert cache['d_rr'].shape == (6, 6) and cache['real_clouds'].shape == (6, 64, 3)
   far = np.asarray(projection.encode(d * 0.3, tiny))
-  m2, _ = protocol.compare(x, far, tiny.nominal_angles(), tiny, 64,
-                           jax.random.key(0), d_rr=d_rr, ref=ref)
-  assert m2['nna'] == 1.0 and m2['jsd'] > 0.1 and m2['mmd'] > 0
+  m2 = metrics.compare(x, far, angles, sensor=tiny, num_points=64, cache=cache)
+  assert m2['1nna'] == 1.0 and m2['jsd'] > 0.1 and m2['mmd'] > 0
+  # The cache holds the real side only: reusing it changes nothing.
+  assert m2 == metrics.compare(x, far, angles, sensor=tiny, num_points=64)
+  with pytest.raises(ValueError, match='another real set'):
+    metrics.compare(far, x, angles, sensor=tiny, num_points=64, cache=cache)
+  with pytest.raises(ValueError, match='another real set'):
+    metrics.compare(x, far, angles, sensor=tiny, num_points=64, cache=cache,
+                    protocol='paper')
+  with pytest.raises(ValueError, match='unknown protocol'):
+    metrics.compare(x, far, angles, protocol='authors')
   table = protocol.format_table({'a': {k: [v, v] for k, v in m2.items()}})
   assert 'JSD x1e2' in table and '+-' in table
+  legacy = {('nna' if k == '1nna' else k): [v] for k, v in m2.items()}
+  assert protocol.format_table({'a': legacy}).splitlines()[-1] == \
+      protocol.format_table({'a': {k: [v] for k, v in m2.items()}}).splitlines()[-1]
+
+
+def test_compare_paper_protocol(tiny):
+  """'paper' differs where the authors' code differs, and only there."""
+  x, d = _scans(tiny, 8, seed=1, drop=0.2)
+  y, _ = _scans(tiny, 8, seed=2, drop=0.2)
+  angles = tiny.nominal_angles()
+  ref = metrics.compare(x, y, angles, sensor=tiny, num_points=64)
+  paper = metrics.compare(x, y, angles, sensor=tiny, num_points=64, protocol='paper')
+  same = metrics.compare(x, x, angles, sensor=tiny, num_points=64, protocol='paper')
+  assert 0.0015 < same['jsd'] < 0.003  # the eps bias: identical sets are not 0
+  assert 5 < paper['swd'] / ref['swd'] < 15
+  # COV, MMD and 1-NNA are the same functions of each protocol's clouds.
+  clouds_r = protocol.prepare_set(x, angles, tiny, 64, protocol='paper')[0]
+  clouds_f = protocol.prepare_set(y, angles, tiny, 64, protocol='paper')[0]
+  np.testing.assert_array_equal(clouds_r[:, 0], 0.0)  # pixel 0 dropped: the origin
+  d_rs = chamfer.pairwise(clouds_r, clouds_f, tile=16)
+  mmd, cov = point_sets.mmd_cov(d_rs.T)
+  assert paper['mmd'] == pytest.approx(mmd, rel=1e-6) and paper['cov'] == cov
+  assert paper['jsd'] == pytest.approx(point_sets.jsd(clouds_r, clouds_f, protocol='paper'))
+  # Without a sensor the shared 0.9-120 m range is used.
+  assert metrics.compare(x, y, angles, num_points=64) == ref
+
+
+def test_subset_rules():
+  # The authors' [skip:limit:skip], written out as Python slicing of a list.
+  for n, num in ((10, 5), (11, 5), (2000, 200), (7, 7), (9, 1)):
+    skip = n // num
+    want = list(range(n))[skip:skip * num + 1:skip]
+    assert protocol.subset(n, num, 'paper').tolist() == want
+  assert len(protocol.subset(10, 5, 'paper')) == 4  # num - 1 when num divides n
+  assert protocol.subset(10, 5).tolist() == [0, 2, 4, 6, 9]
+  assert protocol.subset(3, 5).tolist() == [0, 1, 2]
+  with pytest.raises(ValueError, match='num <= 3'):
+    protocol.subset(3, 5, 'paper')
+
+
+def test_provenance_records_the_definition(tiny):
+  rec = protocol.provenance('paper', 12, 64, [0, 1], protocol.SUBSET_RULES['paper'], tiny)
+  assert rec['protocol'] == 'paper' and rec['num'] == 12 and rec['points'] == 64
+  assert rec['seeds'] == [0, 1] and 'skip' in rec['subset']
+  assert rec['sensor']['name'] == tiny.name and rec['sensor']['max_depth'] == 120.0
+  assert len(rec['sensor']['elevation_deg']) == tiny.height
+  with open(os.path.join(os.path.dirname(HERE), 'pyproject.toml'), 'rb') as f:
+    assert rec['dusty_jax_version'] == tomllib.load(f)['project']['version']
+  json.dumps(rec)
 
 
 def test_evaluate_cli(smoke_run, tmp_path):
@@ -41,7 +109,17 @@ def test_evaluate_cli(smoke_run, tmp_path):
   ev = json.load(open(os.path.join(workdir, 'evaluation.json')))
   row = ev['rows']['dusty1']
   assert len(row['jsd']) == 2 and all(0 <= c <= 1 for c in row['cov'])
-  assert all(0 <= v <= 1 for v in row['nna']) and all(v > 0 for v in row['mmd'])
+  assert all(0 <= v <= 1 for v in row['1nna']) and all(v > 0 for v in row['mmd'])
+  assert ev['protocol'] == 'reference' and ev['num'] == 4 and ev['points'] == 32
+  assert ev['seeds']['metric'] == [0, 1] and 'linspace' in ev['subset']
+  assert ev['sensor']['height'] == 16 and ev['dusty_jax_version']
+  # The paper's protocol, in process: its subset of 4 test scans has 3.
+  from dusty_jax import evaluate
+  evaluate.main(['--workdir', workdir, '--num', '4', '--points', '32', '--seeds', '1',
+                 '--protocol', 'paper', '--no-train-row'])
+  ev = json.load(open(os.path.join(workdir, 'evaluation.json')))
+  assert ev['protocol'] == 'paper' and ev['num'] == 3 and 'skip' in ev['subset']
+  assert len(ev['rows']['dusty1']['jsd']) == 1
 
 
 def test_tolerance_tuning_baseline(tiny):
@@ -59,6 +137,6 @@ def test_tolerance_tuning_baseline(tiny):
   beta = evaluate.tune_tolerance(params, val, trials=6, points=32)
   assert 1e-3 <= beta <= 1e-1
   gen = evaluate._sample_scans(params, jax.random.key(0), len(val))
-  score = lambda b: protocol.tolerance_score(protocol.compare(
-      val, gen, params.angles, tiny, 32, jax.random.key(0), tolerance_gen=b)[0])
+  score = lambda b: protocol.tolerance_score(metrics.compare(
+      val, gen, params.angles, sensor=tiny, num_points=32, tolerance=b))
   assert score(beta) <= max(score(1e-3), score(1e-1)) + 1e-9

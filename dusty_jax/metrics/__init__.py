@@ -1,2 +1,11 @@
 """The paper's metrics in pure JAX: point-set (JSD, COV, MMD, 1-NNA), SWD,
-Chamfer distance, and depth errors."""
+Chamfer distance, and depth errors.
+
+``compare(real, fake, angles, *, protocol, num_points, seed, ...)`` gives all
+of Table II between two sets of scans; ``protocol='paper'`` computes as the
+authors' code does (see protocol.py).
+"""
+
+from dusty_jax.metrics.protocol import PROTOCOLS, compare
+
+__all__ = ['PROTOCOLS', 'compare']

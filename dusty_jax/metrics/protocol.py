@@ -1,57 +1,188 @@
-"""The paper's synthesis evaluation protocol (Table II), reusable from code.
+"""The synthesis evaluation of Table II, reusable from code: :func:`compare`.
 
-Reference clouds: ``num`` scans evenly spaced over the test split. For each
-seed, ``num`` scans are sampled from the EMA generator. Both sides become
-clouds in units of 120 m (dropped pixels excluded), farthest-point sampled
-to ``points`` per cloud; then JSD, COV, MMD and 1-NNA from Chamfer matrices,
-and SWD on the inverse-depth images.
+Both sets are (N, H, W) scans of normalised inverse depth. Each becomes
+clouds in units of the sensor's max range, farthest-point sampled to
+``num_points`` per cloud; then JSD, COV, MMD and 1-NNA from Chamfer
+matrices of those clouds, and SWD on the inverse-depth images.
+
+Two protocols:
+  * ``'reference'`` (default): the published definitions (PointFlow,
+    latent_3d_points, PGGAN); dropped pixels are never sampled, and test
+    scans are taken evenly over the split (``np.linspace``).
+  * ``'paper'``: what the DUSty authors' evaluation code computes, so values
+    can be set beside the paper's tables: their farthest point sampling
+    (pixel 0 first, nothing within 3.79 m; clouds.py), their JSD (eps bias;
+    point_sets.py), their SWD (direction scaling, shifted pyramid, shared
+    patch positions; swd.py) and their test subset
+    ``[skip:skip * num + 1:skip]`` with ``skip = len // num`` (which gives
+    num - 1 scans when num divides the split's length).
+COV, MMD and 1-NNA are computed alike in both (on each protocol's clouds).
+One difference of data remains: the authors' real clouds are the raw KITTI
+points of each kept pixel, ours are back-projected from the range image
+through the angle table (as their generated clouds are).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import importlib.metadata
+import os
+import re
+
+import jax
 import numpy as np
 
 from dusty_jax.metrics import chamfer, clouds, point_sets, swd
+from dusty_jax.metrics.clouds import PROTOCOLS, check_protocol
+from dusty_jax.sensor import SensorSpec, tiny_sensor
 
 ROW_SCALES = (('jsd', 'JSD x1e2', 1e2), ('cov', 'COV %', 1e2),
-              ('mmd', 'MMD x1e3', 1e3), ('nna', '1-NNA %', 1e2),
+              ('mmd', 'MMD x1e3', 1e3), ('1nna', '1-NNA %', 1e2),
               ('swd', 'SWD', 1.0))
+
+# Result files written before the metric was named '1nna' call it 'nna'.
+_LEGACY_KEYS = {'1nna': 'nna'}
+
+SUBSET_RULES = {
+    'reference': 'np.unique(np.linspace(0, n - 1, min(num, n)).astype(int))',
+    'paper': 'skip = n // num; indices [skip:skip * num + 1:skip] of the split',
+}
 
 
 def evenly(n_total: int, num: int) -> np.ndarray:
   return np.unique(np.linspace(0, n_total - 1, min(num, n_total)).astype(int))
 
 
-def prepare_set(scans, angles, sensor, points: int, tolerance: float = 0.0):
+def paper_subset(n_total: int, num: int) -> np.ndarray:
+  """The authors' test subset: every skip-th scan from index skip, skip =
+  n_total // num, up to index skip * num (num - 1 scans when that is
+  n_total)."""
+  if num < 1 or num > n_total:
+    raise ValueError(f'the paper\'s subset needs 1 <= num <= {n_total} (the '
+                     f'split\'s size), got num={num}')
+  skip = n_total // num
+  return np.arange(n_total)[skip:skip * num + 1:skip]
+
+
+def subset(n_total: int, num: int, protocol: str = 'reference') -> np.ndarray:
+  """Indices of the evaluated scans of a split of ``n_total``."""
+  if check_protocol(protocol) == 'paper':
+    return paper_subset(n_total, num)
+  return evenly(n_total, num)
+
+
+def prepare_set(scans, angles, sensor, points: int, tolerance: float = 0.0,
+                protocol: str = 'reference'):
   """(B, H, W) scans -> FPS clouds (B, points, 3), full clouds, validity."""
   full, valid = clouds.scans_to_clouds(scans, angles, sensor, tolerance)
-  return np.asarray(clouds.farthest_point_sample(full, valid, points)), full, valid
+  sampled = clouds.farthest_point_sample(full, valid, points, protocol)
+  return np.asarray(sampled), full, valid
 
 
-def compare(ref_scans, gen_scans, angles, sensor, points: int, key,
-            tolerance_gen: float = 0.0, d_rr=None, ref=None, tile: int = 16,
-            progress: bool = False):
-  """All metrics between reference and generated scans; returns (dict, cache).
+def default_sensor(height: int, width: int) -> SensorSpec:
+  """The depth range every preset shares (0.9 to 120 m), for scans given
+  without a sensor; the metrics use only the range."""
+  return dataclasses.replace(tiny_sensor(height, width),
+                             name=f'default-range-{height}x{width}')
 
-  ``d_rr`` and ``ref`` (the reference clouds) may be passed back in to reuse
-  them across seeds.
+
+def _fingerprint(real, protocol, num_points, sensor):
+  return (protocol, num_points, sensor.min_depth, sensor.max_depth, real.shape,
+          float(np.sum(real, dtype=np.float64)))
+
+
+def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
+            protocol: str = 'reference', num_points: int = 2048, seed: int = 0,
+            tolerance: float = 0.0, cache: dict | None = None, tile: int = 16,
+            progress: bool = False) -> dict:
+  """Table II's metrics between two sets of scans.
+
+  Args:
+    real: (N, H, W) reference scans, normalised inverse depth, ALPHA = -1
+      for drops.
+    fake: (M, H, W) generated scans, same encoding (M = N for SWD).
+    angles: (2, H, W) elevation/azimuth table for back-projection.
+    sensor: gives the depth range (default: 0.9-120 m, every preset's).
+    protocol: 'reference' (published definitions) or 'paper' (the authors'
+      code; see the module docstring).
+    num_points: points per cloud after farthest point sampling.
+    seed: SWD's random patches and directions.
+    tolerance: the baseline's drop tolerance beta, applied to ``fake``.
+    cache: optional dict, filled on the first call and reused by later calls
+      with the same ``real`` (its clouds and Chamfer matrix); a call with
+      another real set, protocol, num_points or depth range raises.
+    tile: clouds per Chamfer tile.
+    progress: progress bars for the Chamfer matrices.
+
+  Returns:
+    dict of floats: jsd, cov, mmd, 1nna, swd.
   """
-  if ref is None:
-    ref = prepare_set(ref_scans, angles, sensor, points)
-  gen = prepare_set(gen_scans, angles, sensor, points, tolerance_gen)
-  if d_rr is None:
-    d_rr = chamfer.pairwise(ref[0], tile=tile, progress=progress)
-  d_rs = chamfer.pairwise(ref[0], gen[0], tile=tile, progress=progress)
-  d_ss = chamfer.pairwise(gen[0], tile=tile, progress=progress)
+  check_protocol(protocol)
+  real = np.asarray(real, np.float32)
+  fake = np.asarray(fake, np.float32)
+  if real.ndim != 3 or fake.ndim != 3 or fake.shape[1:] != real.shape[1:]:
+    raise ValueError('compare needs (N, H, W) scans of one shape, got '
+                     f'{real.shape} and {fake.shape}')
+  if sensor is None:
+    sensor = default_sensor(*real.shape[1:])
+  angles = np.asarray(angles, np.float32)
+  if angles.shape != (2,) + real.shape[1:]:
+    raise ValueError(f'angles of shape {angles.shape} do not match scans of '
+                     f'shape {real.shape[1:]}')
+  cache = {} if cache is None else cache
+  fp = _fingerprint(real, protocol, num_points, sensor)
+  if cache and cache.get('fingerprint') != fp:
+    raise ValueError('this cache holds another real set or setting; pass a new dict')
+  if not cache:
+    ref = prepare_set(real, angles, sensor, num_points, 0.0, protocol)[0]
+    cache.update(fingerprint=fp, real_clouds=ref,
+                 d_rr=chamfer.pairwise(ref, tile=tile, progress=progress))
+  ref, d_rr = cache['real_clouds'], cache['d_rr']
+  gen = prepare_set(fake, angles, sensor, num_points, tolerance, protocol)[0]
+  d_rs = chamfer.pairwise(ref, gen, tile=tile, progress=progress)
+  d_ss = chamfer.pairwise(gen, tile=tile, progress=progress)
   mmd, cov = point_sets.mmd_cov(d_rs.T)
-  out = {
+  return {
       # All point metrics on the farthest-point-sampled clouds, as the paper.
-      'jsd': point_sets.jsd(ref[0], gen[0]),
+      'jsd': point_sets.jsd(ref, gen, protocol=protocol),
       'cov': cov, 'mmd': mmd,
-      'nna': point_sets.one_nna(d_rr, d_rs, d_ss),
-      'swd': swd.swd(key, ref_scans, gen_scans)['swd_mean'],
+      '1nna': point_sets.one_nna(d_rr, d_rs, d_ss),
+      'swd': swd.swd(jax.random.key(seed), real, fake, protocol=protocol)['swd_mean'],
   }
-  return out, (d_rr, ref)
+
+
+@functools.lru_cache(maxsize=1)
+def version() -> str:
+  """dusty_jax's version: its source tree's pyproject.toml when run from
+  one, else the installed distribution's."""
+  root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+  try:
+    with open(os.path.join(root, 'pyproject.toml')) as f:
+      text = f.read()
+    m = re.search(r'^version\s*=\s*"([^"]+)"', text, re.M)
+    if m and re.search(r'^name\s*=\s*"dusty_jax"', text, re.M):
+      return m.group(1)
+  except OSError:
+    pass
+  try:
+    return importlib.metadata.version('dusty_jax')
+  except importlib.metadata.PackageNotFoundError:
+    return 'unknown'
+
+
+def sensor_record(sensor: SensorSpec) -> dict:
+  d = dataclasses.asdict(sensor)
+  d['elevation_deg'] = list(d['elevation_deg'])
+  return d
+
+
+def provenance(protocol: str, num: int, points, seeds, subset_rule: str,
+               sensor: SensorSpec, **extra) -> dict:
+  """What every result file records beside its numbers."""
+  return {'protocol': check_protocol(protocol), 'num': int(num), 'points': points,
+          'seeds': seeds, 'subset': subset_rule, 'sensor': sensor_record(sensor),
+          'dusty_jax_version': version(), **extra}
 
 
 def format_table(rows: dict) -> str:
@@ -61,7 +192,7 @@ def format_table(rows: dict) -> str:
   for label, m in rows.items():
     cells = []
     for k, _, s in ROW_SCALES:
-      v = np.asarray(m[k], np.float64) * s
+      v = np.asarray(m[k] if k in m else m[_LEGACY_KEYS[k]], np.float64) * s
       cells.append(f'{v.mean():10.3f} +- {v.std():5.3f}' if len(v) > 1
                    else f'{v.mean():18.3f}')
     lines.append(f'{label:24s}' + ''.join(f'{c:>18s}' for c in cells))
@@ -70,4 +201,4 @@ def format_table(rows: dict) -> str:
 
 def tolerance_score(m: dict) -> float:
   """The paper's weighted score for tuning the baseline's tolerance beta."""
-  return m['jsd'] * 10 - m['cov'] + m['mmd'] * 1e2 + m['nna']
+  return m['jsd'] * 10 - m['cov'] + m['mmd'] * 1e2 + m['1nna']
