@@ -91,7 +91,7 @@ def test_provenance_records_the_definition(tiny):
   assert rec['protocol'] == 'paper' and rec['num'] == 12 and rec['points'] == 64
   assert rec['seeds'] == [0, 1] and 'skip' in rec['subset']
   assert rec['sensor']['name'] == tiny.name and rec['sensor']['max_depth'] == 120.0
-  assert len(rec['sensor']['elevation_deg']) == tiny.height
+  assert len(rec['sensor']['elevation_deg']) == rec['sensor']['height'] == tiny.height
   with open(os.path.join(os.path.dirname(HERE), 'pyproject.toml'), 'rb') as f:
     assert rec['dusty_jax_version'] == tomllib.load(f)['project']['version']
   json.dumps(rec)

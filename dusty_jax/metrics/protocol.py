@@ -174,7 +174,7 @@ def version() -> str:
 def sensor_record(sensor: SensorSpec) -> dict:
   d = dataclasses.asdict(sensor)
   d['elevation_deg'] = list(d['elevation_deg'])
-  return d
+  return {'height': sensor.height, **d}
 
 
 def provenance(protocol: str, num: int, points, seeds, subset_rule: str,
