@@ -11,9 +11,14 @@ points) and ``NAME.png`` (target, corrupted input, x_tilde, measurability,
 re-rendered scan), plus ``metrics.json``.
 
     python -m dusty_jax.invert --workdir RUN --split test --num 100 [--corrupt ...]
+        [--protocol reference|paper]
 
-evaluates over a prepared split instead and prints the layout of the
-paper's Table III.
+evaluates over the first --num scans of a prepared split instead and prints
+the layout of the paper's Table III (the authors evaluate every test scan).
+``--protocol paper`` computes the Chamfer distance as the authors' code
+(every pixel of both scans, dropped ones at the origin); the default,
+``reference``, over valid points only. metrics.json records the protocol,
+N, seeds, the scans taken, the sensor and the dusty_jax version.
 
 This module is also callable: ``dusty_jax.invert(params, scan)`` runs
 :func:`dusty_jax.inversion.invert` whichever of the two the name refers to.
@@ -88,23 +93,36 @@ def read_inputs(path: str, sensor, log=print):
   return out
 
 
-def evaluate_batch(params, target_depth, result, angles):
-  """Depth errors of x_tilde and Chamfer distance, per scan (numpy dicts)."""
+def evaluate_batch(params, target_depth, result, angles, protocol='reference'):
+  """Depth errors of x_tilde and Chamfer distance, per scan (numpy dicts).
+
+  x_tilde is complete: every pixel has a range, ALPHA being max_depth, not a
+  drop. The Chamfer distance is between the target's and the re-rendered
+  scan's points (units of max_depth): ``protocol='reference'`` over their
+  valid points only; ``'paper'`` as the authors' code, over all H x W
+  pixels of both with every dropped pixel at the origin.
+  """
   import jax.numpy as jnp
   from dusty_jax import projection
-  from dusty_jax.metrics import chamfer, depth as depth_metrics
+  from dusty_jax.metrics import chamfer, clouds, depth as depth_metrics
+  paper = clouds.check_protocol(protocol) == 'paper'
   sensor = params.sensor
   target_depth = np.asarray(target_depth, np.float32)
   valid_t = np.asarray(projection.valid_depth(target_depth, sensor))
-  # x_tilde is complete: ALPHA there is max_depth, not a drop.
   pred = projection.complete_depth(result['inv_depth'], sensor)
   errs = {k: np.asarray(v) for k, v in
           depth_metrics.depth_errors(pred, target_depth, valid_t).items()}
-  pts_t = np.asarray(projection.to_points(target_depth, angles)) / sensor.max_depth
+  pts_t = np.asarray(projection.to_points(np.where(valid_t, target_depth, 0.0),
+                                          angles)) / sensor.max_depth
   pts_r = np.asarray(result['points']) / sensor.max_depth
   valid_r = np.asarray(result['valid'])
   cds = []
   for i in range(len(target_depth)):
+    if paper:  # fixed size: one compiled shape, no (P, Q) matrix
+      a = pts_t[i].reshape(1, -1, 3)
+      b = np.where(valid_r[i][..., None], pts_r[i], 0.0).reshape(1, -1, 3)
+      cds.append(float(chamfer.pairwise(a, b, tile=1)[0, 0]))
+      continue
     a, b = pts_t[i][valid_t[i]], pts_r[i][valid_r[i]]
     cds.append(float(chamfer.chamfer(jnp.asarray(a), jnp.asarray(b)))
                if len(a) and len(b) else float('nan'))
@@ -135,6 +153,19 @@ def complete_depth_errors(params, result, complete):
   return out
 
 
+def table_provenance(a, sensor, num: int) -> dict:
+  """What metrics.json records of how its numbers were computed."""
+  from dusty_jax.metrics import protocol
+  points = ('every pixel, dropped ones at the origin' if a.protocol == 'paper'
+            else 'every valid pixel')
+  rule = (f'the first {a.num} scans of split {a.split!r}' if a.split
+          else f'every readable scan of {a.input!r}')
+  seeds = {'seed': a.seed, 'batch': a.batch,
+           'keys': 'k = fold_in(key(seed), batch start) corrupts the batch; '
+                   'fold_in(k, i) starts the search of its scan i'}
+  return protocol.provenance(a.protocol, num, points, seeds, rule, sensor)
+
+
 def format_table(rows: dict) -> str:
   """Rows {label: {metric: mean}} in the layout of the paper's Table III."""
   head = f'{"":24s}' + ''.join(f'{name:>12s}' for _, name, _ in TABLE_COLUMNS)
@@ -156,6 +187,9 @@ def main(argv=None):
   p.add_argument('--steps', type=int, default=1000)
   p.add_argument('--batch', type=int, default=16)
   p.add_argument('--seed', type=int, default=0)
+  p.add_argument('--protocol', choices=('reference', 'paper'), default='reference',
+                 help="Table III's Chamfer distance: 'reference' over valid points, "
+                 "'paper' as the authors (dropped pixels at the origin in both)")
   a = p.parse_args(argv)
   try:
     run(a)
@@ -198,7 +232,7 @@ def run(a):
     keys = jax.vmap(lambda i: jax.random.fold_in(k, i))(jax.numpy.arange(len(chunk)))
     res = jax.device_get(inversion.invert(params, target, key=keys,
                                           num_steps=a.steps))
-    errs = evaluate_batch(params, depth, res, angles)
+    errs = evaluate_batch(params, depth, res, angles, a.protocol)
     if a.split and truth is not None:
       sl = slice(start, start + len(chunk))
       measurability.append(res['measurability'])
@@ -223,8 +257,10 @@ def run(a):
   mean = {k: float(np.nanmean([r[k] for r in per_scan])) for k in columns}
   label = f'{config.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
-    json.dump({'mean': mean, 'per_scan': per_scan, 'corrupt': a.corrupt,
-               'steps': a.steps}, f, indent=2)
+    json.dump({**table_provenance(a, sensor, len(per_scan)), 'mean': mean,
+               'per_scan': per_scan, 'corrupt': a.corrupt, 'steps': a.steps},
+              f, indent=2)
+  print(f'protocol {a.protocol}: {len(per_scan)} scans')
   print(format_table({label: mean}))
   if measurability:
     from dusty_jax.metrics import calibration

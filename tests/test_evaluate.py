@@ -140,3 +140,67 @@ def test_tolerance_tuning_baseline(tiny):
   score = lambda b: protocol.tolerance_score(metrics.compare(
       val, gen, params.angles, sensor=tiny, num_points=32, tolerance=b))
   assert score(beta) <= max(score(1e-3), score(1e-1)) + 1e-9
+
+
+def _cd_kdtree(a, b):
+  from scipy.spatial import cKDTree
+  return (np.mean(cKDTree(b).query(a)[0] ** 2) + np.mean(cKDTree(a).query(b)[0] ** 2))
+
+
+def test_reconstruction_errors_both_protocols(tiny):
+  """Table III per scan: the Chamfer distance over valid points (reference)
+  or over every pixel with drops at the origin in both clouds (paper), each
+  against a k-d tree; x_tilde = -1 is a 120 m range, not a drop."""
+  import importlib
+  import types
+  invert = importlib.import_module('dusty_jax.invert')  # the CLI module
+  rng = np.random.default_rng(3)
+  angles = tiny.nominal_angles()
+  target = rng.uniform(2, 100, (2,) + tiny.shape).astype(np.float32)
+  target[rng.uniform(size=target.shape) < 0.3] = 0
+  target[:, 0, :4] = 119.0  # far returns, reconstructed as x_tilde = -1
+  rec = target * rng.uniform(0.9, 1.1, target.shape).astype(np.float32)
+  rec[rng.uniform(size=rec.shape) < 0.2] = 0
+  x_tilde = np.array(projection.encode(np.where(rec > 0, rec, 50.0), tiny))
+  x_tilde[:, 0, :4] = -1.0
+  scan = np.asarray(projection.encode(rec, tiny))
+  depth, valid = projection.decode(scan, tiny)
+  result = {'inv_depth': x_tilde, 'valid': np.asarray(valid),
+            'points': np.asarray(projection.to_points(depth, angles))}
+  params = types.SimpleNamespace(sensor=tiny)
+  ref = invert.evaluate_batch(params, target, result, angles)
+  paper = invert.evaluate_batch(params, target, result, angles, 'paper')
+  pts_t = np.asarray(projection.to_points(target, angles)) / 120.0
+  pts_r = result['points'] / 120.0
+  vt = np.asarray(projection.valid_depth(target, tiny))
+  for i in range(2):
+    want_ref = _cd_kdtree(pts_t[i][vt[i]], pts_r[i][result['valid'][i]])
+    full_t = np.where(vt[i][..., None], pts_t[i], 0).reshape(-1, 3)
+    full_r = np.where(result['valid'][i][..., None], pts_r[i], 0).reshape(-1, 3)
+    assert ref['cd'][i] == pytest.approx(want_ref, rel=1e-4)
+    assert paper['cd'][i] == pytest.approx(_cd_kdtree(full_t, full_r), rel=1e-4)
+    assert abs(paper['cd'][i] - ref['cd'][i]) > 0.05 * ref['cd'][i]
+  # Depth errors are the same in both; -1 decodes to 120 m (AbsRel 1/119 there).
+  for k in ('abs_rel', 'rmse', 'delta1'):
+    np.testing.assert_array_equal(ref[k], paper[k])
+  one = {'inv_depth': x_tilde[:1] * 0 - 1.0, 'valid': result['valid'][:1],
+         'points': result['points'][:1]}
+  only_far = np.zeros_like(target[:1])
+  only_far[0, 0, :4] = 119.0
+  errs = invert.evaluate_batch(params, only_far, one, angles)
+  assert errs['abs_rel'][0] == pytest.approx(1 / 119, rel=1e-4)
+  assert errs['delta1'][0] == 1.0
+
+
+def test_invert_cli_records_protocol(smoke_run, tmp_path):
+  import importlib
+  invert = importlib.import_module('dusty_jax.invert')  # the CLI module
+  _, workdir, _ = smoke_run
+  out = tmp_path / 'inv'
+  invert.main(['--workdir', workdir, '--split', 'val', '--num', '2', '--steps', '2',
+               '--protocol', 'paper', '--out', str(out)])
+  m = json.load(open(out / 'metrics.json'))
+  assert m['protocol'] == 'paper' and m['num'] == 2 and 'origin' in m['points']
+  assert m['seeds']['seed'] == 0 and "split 'val'" in m['subset']
+  assert m['sensor']['height'] == 16 and m['dusty_jax_version']
+  assert len(m['per_scan']) == 2 and np.isfinite(m['mean']['cd'])
