@@ -405,3 +405,10 @@ def test_swd_paper_end_to_end_scale():
   ref = swd.swd(key, a, c, per_image=64)['swd_mean']
   paper = swd.swd(key, a, c, per_image=64, protocol='paper')['swd_mean']
   assert 5 < paper / ref < 10
+  # Each part alone: the directions scale by about 7 on the same descriptors.
+  only = lambda *p: swd.swd(key, a, c, per_image=64, protocol='paper',
+                            paper_parts=p)['swd_mean']
+  assert 6.5 < only('directions') / ref < 7.5
+  assert only('pyramid') != ref and only('patches') != ref
+  with pytest.raises(ValueError, match='unknown parts'):
+    only('pyramids')

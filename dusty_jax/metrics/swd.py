@@ -121,20 +121,30 @@ def sliced_wasserstein(key, a, b, repeats: int = 4, per_repeat: int = 128,
 
 
 PAPER_BATCH = 128  # images sharing one set of patch positions.
+PAPER_PARTS = ('directions', 'pyramid', 'patches')
 
 
 def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
         repeats: int = 4, per_repeat: int = 128, batch: int | None = None,
-        protocol: str = 'reference'):
+        protocol: str = 'reference', paper_parts=PAPER_PARTS):
   """{'swd_<size>': ..., 'swd_mean': ...} between (B, H, W) image sets.
 
-  ``batch``: images per pyramid call (default 256; with ``protocol='paper'``
-  128, the group that shares patch positions).
+  ``batch``: images per pyramid call (default 256; 128 with the paper's
+  shared patches, the group that shares positions). With
+  ``protocol='paper'``, ``paper_parts`` selects which of the authors'
+  differences apply (all by default; fewer to measure each one alone):
+  'directions' (std-scaled directions and (n-1) standardisation),
+  'pyramid' (the shifted upsampling), 'patches' (positions shared by a
+  batch).
   """
   if protocol not in ('reference', 'paper'):
     raise ValueError(f'unknown protocol {protocol!r}')
-  paper = protocol == 'paper'
-  batch = batch or (PAPER_BATCH if paper else 256)
+  parts = set(paper_parts) if protocol == 'paper' else set()
+  if parts - set(PAPER_PARTS):
+    raise ValueError(f'unknown parts {sorted(parts - set(PAPER_PARTS))}')
+  shifted, shared, dirs = ('pyramid' in parts, 'patches' in parts,
+                           'directions' in parts)
+  batch = batch or (PAPER_BATCH if shared else 256)
   images_a, images_b = jnp.asarray(images_a), jnp.asarray(images_b)
   if images_a.shape[1:] != images_b.shape[1:] or len(images_a) != len(images_b):
     raise ValueError('SWD needs two sets of the same number and shape of images,'
@@ -144,17 +154,17 @@ def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
   kp, kd = jax.random.split(key)
   for s, imgs in enumerate((images_a, images_b)):
     for i in range(0, len(imgs), batch):
-      pyr = laplacian_pyramid(imgs[i:i + batch], levels, paper)
+      pyr = laplacian_pyramid(imgs[i:i + batch], levels, shifted)
       for lvl, p in enumerate(pyr):
         k = jax.random.fold_in(jax.random.fold_in(kp, s * 1_000_003 + i), lvl)
-        desc[s][lvl].append(patches(k, p, per_image, size, paper))
+        desc[s][lvl].append(patches(k, p, per_image, size, shared))
   result = {}
-  ddof = int(paper)
+  ddof = int(dirs)
   for lvl in range(levels):
     a = normalise(jnp.concatenate(desc[0][lvl]), ddof)
     b = normalise(jnp.concatenate(desc[1][lvl]), ddof)
     side = min(images_a.shape[1:]) >> lvl
     result[f'swd_{side}'] = float(sliced_wasserstein(
-        jax.random.fold_in(kd, lvl), a, b, repeats, per_repeat, paper))
+        jax.random.fold_in(kd, lvl), a, b, repeats, per_repeat, dirs))
   result['swd_mean'] = float(np.mean(list(result.values())))
   return result
