@@ -104,8 +104,13 @@ def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True,
   ``config`` their yaml (default: found beside it) and optional ``angles``.
   """
   if os.path.isfile(workdir):
+    if step is not None:
+      raise ValueError(f'{workdir}: step= is for a run directory, not a single file')
     from dusty_jax import authors
     return authors.load(workdir, config=config, ema=ema, angles=angles)
+  if config is not None or angles is not None:
+    raise ValueError(f'{workdir}: config= and angles= are for an authors\' .pth; '
+                     'a run directory holds its own')
   from dusty_jax import sensor as sensor_lib, trainer
   from dusty_jax.data import arrays, pipeline
   config = load_config(workdir)

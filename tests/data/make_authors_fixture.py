@@ -62,6 +62,22 @@ def main(repo):
       arrays['confidence'] = out['confidence'].permute(0, 2, 3, 1).numpy()
     np.savez(os.path.join(HERE, f'authors_{name}_outputs.npz'), **arrays)
     print(name, {k: v.shape for k, v in arrays.items()})
+  write_angles()
+
+
+def write_angles():
+  """An angles.pt as their process_kitti.py writes it (pitch, yaw at a
+  finer native width), and the table their LiDAR class makes of it for the
+  fixture's shape (F.interpolate, bilinear, as in utils/lidar.py)."""
+  g = torch.Generator().manual_seed(1)
+  h, w = 16, 128
+  pitch = torch.linspace(0.03, -0.4, h)[:, None].expand(h, w)
+  yaw = torch.linspace(3.1, -3.1, w)[None, :].expand(h, w)
+  angles = torch.stack([pitch, yaw]) + 0.01 * torch.randn(2, h, w, generator=g)
+  torch.save(angles, os.path.join(HERE, 'authors_angles.pt'))
+  table = torch.nn.functional.interpolate(angles[None], size=SHAPE, mode='bilinear')[0]
+  np.save(os.path.join(HERE, 'authors_angles_resized.npy'), table.numpy())
+  print('angles', tuple(angles.shape), '->', tuple(table.shape))
 
 
 if __name__ == '__main__':
