@@ -1,87 +1,18 @@
 """Where metrics and pictures go: JSONL, TensorBoard event files, PNG.
 
-TensorBoard's event format is written directly (TFRecord framing around
-hand-encoded ``Event`` protos), so neither TensorFlow nor clu is needed.
+The event files are written by tensorboardX; neither TensorFlow nor clu is
+needed.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import socket
-import struct
 import time
 
 import numpy as np
 from PIL import Image
-
-# ----------------------------------------------------------------------------
-# CRC32C (Castagnoli), for TFRecord framing.
-# ----------------------------------------------------------------------------
-
-def _crc_table():
-  table = []
-  for i in range(256):
-    c = i
-    for _ in range(8):
-      c = (c >> 1) ^ 0x82F63B78 if c & 1 else c >> 1
-    table.append(c)
-  return table
-
-
-_TABLE = _crc_table()
-
-
-def crc32c(data: bytes) -> int:
-  c = 0xFFFFFFFF
-  for byte in data:
-    c = _TABLE[(c ^ byte) & 0xFF] ^ (c >> 8)
-  return c ^ 0xFFFFFFFF
-
-
-def _masked_crc(data: bytes) -> int:
-  c = crc32c(data)
-  return (((c >> 15) | (c << 17)) + 0xA282EAD8) & 0xFFFFFFFF
-
-
-def tfrecord(data: bytes) -> bytes:
-  length = struct.pack('<Q', len(data))
-  return (length + struct.pack('<I', _masked_crc(length)) + data +
-          struct.pack('<I', _masked_crc(data)))
-
-
-# ----------------------------------------------------------------------------
-# Minimal protobuf encoding of tensorflow.Event / Summary.
-# ----------------------------------------------------------------------------
-
-def _varint(n: int) -> bytes:
-  out = bytearray()
-  while True:
-    b = n & 0x7F
-    n >>= 7
-    out.append(b | (0x80 if n else 0))
-    if not n:
-      return bytes(out)
-
-
-def _field(num: int, wire: int, payload: bytes) -> bytes:
-  return _varint((num << 3) | wire) + payload
-
-
-def _bytes_field(num, data: bytes) -> bytes:
-  return _field(num, 2, _varint(len(data)) + data)
-
-
-def scalar_event(step: int, tag: str, value: float, wall_time: float) -> bytes:
-  val = _bytes_field(1, tag.encode()) + _field(2, 5, struct.pack('<f', value))
-  summary = _bytes_field(1, val)
-  return (_field(1, 1, struct.pack('<d', wall_time)) +
-          _field(2, 0, _varint(step)) + _bytes_field(5, summary))
-
-
-def version_event(wall_time: float) -> bytes:
-  return _field(1, 1, struct.pack('<d', wall_time)) + _bytes_field(
-      3, b'brain.Event:2')
+import tensorboardX
 
 
 class MetricWriter:
@@ -108,10 +39,7 @@ class MetricWriter:
         f.writelines(keep)
       os.replace(path + '.tmp', path)
     self.jsonl = open(path, 'a')
-    now = time.time()
-    name = f'events.out.tfevents.{int(now)}.{socket.gethostname()}'
-    self.events = open(os.path.join(workdir, name), 'ab')
-    self.events.write(tfrecord(version_event(now)))
+    self.events = tensorboardX.SummaryWriter(workdir)
 
   def write(self, step: int, scalars: dict):
     if not self.enabled:
@@ -120,7 +48,7 @@ class MetricWriter:
     scalars = {k: float(v) for k, v in scalars.items()}
     self.jsonl.write(json.dumps({'step': step, 'time': now, **scalars}) + '\n')
     for k, v in scalars.items():
-      self.events.write(tfrecord(scalar_event(step, k, v, now)))
+      self.events.add_scalar(k, v, global_step=step, walltime=now)
     self.flush()
 
   def flush(self):
@@ -132,24 +60,6 @@ class MetricWriter:
     if self.enabled:
       self.jsonl.close()
       self.events.close()
-
-
-def read_tfrecords(path: str) -> list[bytes]:
-  """Reads back TFRecord payloads, checking both CRCs (for tests and tools)."""
-  out = []
-  with open(path, 'rb') as f:
-    data = f.read()
-  i = 0
-  while i < len(data):
-    (n,) = struct.unpack('<Q', data[i:i + 8])
-    if struct.unpack('<I', data[i + 8:i + 12])[0] != _masked_crc(data[i:i + 8]):
-      raise ValueError(f'{path}: corrupt length CRC at byte {i}')
-    payload = data[i + 12:i + 12 + n]
-    if struct.unpack('<I', data[i + 12 + n:i + 16 + n])[0] != _masked_crc(payload):
-      raise ValueError(f'{path}: corrupt data CRC at byte {i}')
-    out.append(payload)
-    i += 16 + n
-  return out
 
 
 # ----------------------------------------------------------------------------

@@ -1,0 +1,54 @@
+"""MetricWriter: metrics.jsonl and the TensorBoard event file hold what was written."""
+
+import json
+import os
+
+import numpy as np
+
+from dusty_jax import writers
+from event_files import read_events, scalars
+
+
+def _event_files(workdir):
+  return [os.path.join(workdir, f) for f in os.listdir(workdir)
+          if f.startswith('events.out.tfevents.')]
+
+
+def test_event_file_holds_each_scalar_at_its_step(tmp_path):
+  w = writers.MetricWriter(str(tmp_path))
+  w.write(2, {'loss_d': 1.25, 'loss_g': np.float32(-0.5)})
+  w.write(4, {'loss_d': 0.75, 'images_per_sec': 1234.5})
+  w.close()
+  (path,) = _event_files(tmp_path)
+  events = read_events(path)
+  assert events[0].file_version == 'brain.Event:2'
+  assert scalars(events) == [(2, 'loss_d', 1.25), (2, 'loss_g', -0.5),
+                             (4, 'loss_d', 0.75), (4, 'images_per_sec', 1234.5)]
+  # Event and JSONL record of a step carry the same wall time.
+  recs = [json.loads(l) for l in open(tmp_path / 'metrics.jsonl')]
+  times = {e.step: e.wall_time for e in events[1:]}
+  assert [r['step'] for r in recs] == [2, 4]
+  assert all(times[r['step']] == r['time'] for r in recs)
+
+
+def test_disabled_writer_writes_nothing(tmp_path):
+  w = writers.MetricWriter(str(tmp_path / 'w'), enabled=False)
+  w.write(1, {'loss': 1.0})
+  w.close()
+  assert not (tmp_path / 'w').exists()
+
+
+def test_metrics_jsonl_has_one_record_per_step_after_resume(tmp_path):
+  path = tmp_path / 'metrics.jsonl'
+  lines = [json.dumps({'step': s, 'loss': s}) for s in (5, 10, 15, 20)]
+  path.write_text('\n'.join(lines) + '\n{"step": 2')  # and a line cut by a kill
+  w = writers.MetricWriter(str(tmp_path), resume_step=10)
+  for s in (15, 20):
+    w.write(s, {'loss': -s})
+  w.close()
+  recs = [json.loads(l) for l in path.read_text().splitlines()]
+  assert [r['step'] for r in recs] == [5, 10, 15, 20]
+  assert [r['loss'] for r in recs] == [5, 10, -15, -20]
+  # The event file of the resumed run holds only what that run wrote.
+  (events,) = _event_files(tmp_path)
+  assert scalars(read_events(events)) == [(15, 'loss', -15.0), (20, 'loss', -20.0)]
