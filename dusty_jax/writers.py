@@ -113,38 +113,28 @@ def prob_tile(p):
 
 def line_plot(path: str, series: dict, xlabel: str, ylabel: str, title: str = '',
               logx: bool = False, size=(640, 400)):
-  """A small line chart as PNG (PIL only). ``series``: {name: (xs, ys)}."""
-  from PIL import ImageDraw
-  w, h = size
-  left, right, top, bottom = 70, 20, 30, 50
-  img = Image.new('RGB', size, 'white')
-  dr = ImageDraw.Draw(img)
-  xs_all = np.concatenate([np.asarray(x, float) for x, _ in series.values()])
-  ys_all = np.concatenate([np.asarray(y, float) for _, y in series.values()])
-  fx = np.log10 if logx else (lambda v: np.asarray(v, float))
-  x0, x1 = fx(xs_all.min()), fx(xs_all.max())
-  y0, y1 = float(np.nanmin(ys_all)), float(np.nanmax(ys_all))
-  if y1 == y0:
-    y1 = y0 + 1
-  pad = 0.05 * (y1 - y0)
-  y0, y1 = y0 - pad, y1 + pad
-  px = lambda x: left + (fx(x) - x0) / max(x1 - x0, 1e-12) * (w - left - right)
-  py = lambda y: h - bottom - (y - y0) / (y1 - y0) * (h - top - bottom)
-  dr.rectangle([left, top, w - right, h - bottom], outline='black')
-  for v in np.unique(xs_all):
-    dr.text((px(v) - 10, h - bottom + 5), f'{v:g}', fill='black')
-  for v in np.linspace(y0, y1, 5):
-    dr.text((5, py(v) - 6), f'{v:.3g}', fill='black')
-  dr.text((w // 2 - 40, h - 20), xlabel, fill='black')
-  dr.text((5, 8), f'{ylabel}   {title}', fill='black')
-  colors = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14)]
-  for i, (name, (xs, ys)) in enumerate(series.items()):
-    c = colors[i % len(colors)]
-    pts = [(px(x), py(y)) for x, y in zip(xs, ys) if np.isfinite(y)]
-    if len(pts) > 1:
-      dr.line(pts, fill=c, width=2)
-    for p in pts:
-      dr.ellipse([p[0] - 3, p[1] - 3, p[0] + 3, p[1] + 3], fill=c)
-    dr.text((w - right - 200, top + 8 + 14 * i), name, fill=c)
+  """A small line chart as PNG (matplotlib). ``series``: {name: (xs, ys)};
+  ``size`` in pixels. Non-finite y values are left out."""
+  from matplotlib.figure import Figure  # no pyplot: no global state, no GUI
+  dpi = 100
+  fig = Figure(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
+  ax = fig.add_subplot()
+  for name, (xs, ys) in series.items():
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    ok = np.isfinite(ys)
+    ax.plot(xs[ok], ys[ok], 'o-', ms=4, label=name)
+  if logx:
+    ax.set_xscale('log')
+  ticks = np.unique(np.concatenate([np.asarray(x, float) for x, _ in series.values()]))
+  if len(ticks) <= 12:  # label the measured x values themselves
+    ax.set_xticks(ticks, [f'{v:g}' for v in ticks])
+    ax.minorticks_off()
+  ax.set_xlabel(xlabel)
+  ax.set_ylabel(ylabel)
+  if title:
+    ax.set_title(title)
+  ax.grid(alpha=0.3)
+  ax.legend(fontsize=8)
+  fig.tight_layout()
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  img.save(path)
+  fig.savefig(path)

@@ -52,3 +52,16 @@ def test_metrics_jsonl_has_one_record_per_step_after_resume(tmp_path):
   # The event file of the resumed run holds only what that run wrote.
   (events,) = _event_files(tmp_path)
   assert scalars(read_events(events)) == [(15, 'loss', -15.0), (20, 'loss', -20.0)]
+
+
+def test_line_plot_draws_a_png_of_the_asked_size(tmp_path):
+  from PIL import Image
+  path = tmp_path / 'sub' / 'plot.png'
+  writers.line_plot(str(path), {'a': ([50, 100, 1000], [3.0, np.nan, 1.0]),
+                                'b': ([50, 100], [2.0, 2.5])},
+                    'iterations (log)', 'L1', title='t', logx=True, size=(320, 200))
+  img = np.asarray(Image.open(path).convert('RGB'))
+  assert img.shape == (200, 320, 3)
+  # Both series are drawn in colour (matplotlib's first two cycle colours).
+  for rgb in ((31, 119, 180), (255, 127, 14)):
+    assert (np.abs(img.astype(int) - rgb).sum(-1) < 30).sum() > 20
