@@ -9,26 +9,12 @@ vmapped over a batch. Results go to benchmarks/results/chamfer_fps.json.
 """
 
 import argparse
-import json
 import os
-import statistics
-import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
+import common
 from dusty_jax.metrics import chamfer, clouds
-
-
-def timed(fn, repeats):
-  fn()  # compile and warm up
-  ts = []
-  for _ in range(repeats):
-    t = time.perf_counter()
-    fn()
-    ts.append(time.perf_counter() - t)
-  return statistics.median(ts), ts
 
 
 def main():
@@ -45,30 +31,28 @@ def main():
   n = a.clouds
   A = rng.normal(size=(n, a.points, 3)).astype(np.float32)
   B = rng.normal(size=(n, a.points, 3)).astype(np.float32)
-  print(f'{jax.device_count()} x {jax.devices()[0].device_kind}, {os.cpu_count()} CPUs,'
-        f' jax {jax.__version__}')
-  med, ts = timed(lambda: chamfer.pairwise(A, B, tile=a.tile), a.repeats)
+  info = common.print_banner()
+  med = common.timed(lambda: chamfer.pairwise(A, B, tile=a.tile), a.repeats).median
   pairs = n * n / med
   print(f'chamfer {a.points} pts: {n}x{n} matrix in {med:.2f} s -> {pairs:.0f} pairs/s '
         f'(tile {a.tile}, median of {a.repeats})')
-  med_sym, _ = timed(lambda: chamfer.pairwise(A, tile=a.tile), a.repeats)
+  med_sym = common.timed(lambda: chamfer.pairwise(A, tile=a.tile), a.repeats).median
   print(f'chamfer symmetric {n}x{n}: {med_sym:.2f} s ({n * n / med_sym:.0f} '
         'effective pairs/s, each unordered pair once)')
 
   pts = rng.normal(size=(a.fps_batch, 16384, 3)).astype(np.float32)
   valid = rng.uniform(size=(a.fps_batch, 16384)) > 0.2
-  one = lambda: jax.block_until_ready(clouds.farthest_point_indices(pts[:1], valid[:1], 2048))
-  med_one, _ = timed(one, a.repeats)
-  many = lambda: jax.block_until_ready(clouds.farthest_point_indices(pts, valid, 2048))
-  med_many, _ = timed(many, a.repeats)
+  one = lambda: clouds.farthest_point_indices(pts[:1], valid[:1], 2048)
+  med_one = common.timed(one, a.repeats).median
+  many = lambda: clouds.farthest_point_indices(pts, valid, 2048)
+  med_many = common.timed(many, a.repeats).median
   print(f'FPS 2048 of 16384: {med_one * 1e3:.1f} ms for one cloud, '
         f'{med_many / a.fps_batch * 1e3:.1f} ms per cloud in a batch of {a.fps_batch}')
-  os.makedirs(os.path.dirname(a.out), exist_ok=True)
-  with open(a.out, 'w') as f:
-    json.dump(dict(points=a.points, clouds=n, tile=a.tile, chamfer_pairs_per_s=pairs,
-                   chamfer_matrix_s=med, chamfer_sym_s=med_sym,
-                   fps_one_ms=med_one * 1e3, fps_batched_ms=med_many / a.fps_batch * 1e3,
-                   device=jax.devices()[0].device_kind, cpus=os.cpu_count()), f, indent=2)
+  common.write_json(a.out, dict(
+      points=a.points, clouds=n, tile=a.tile, chamfer_pairs_per_s=pairs,
+      chamfer_matrix_s=med, chamfer_sym_s=med_sym, fps_one_ms=med_one * 1e3,
+      fps_batched_ms=med_many / a.fps_batch * 1e3, device=info['device_kind'],
+      cpus=info['cpus']))
 
 
 if __name__ == '__main__':

@@ -15,7 +15,7 @@ with and without their drops tells whether it can see drops at all:
 If D scores ``filled`` like ``observed``, it does not see drops, and G has no
 reason to keep them. Also the mean D input-gradient on real scans at dropped
 pixels vs returned ones, and what the generator's drops look like (rate,
-where). Prints a table; ``--json`` writes it.
+where). Prints a table; ``--json`` writes it (with the machine it ran on).
 
     python benchmarks/diagnose_drops.py --can-d-see-drops [--steps 300]
 
@@ -28,7 +28,7 @@ the held-out logit gap and accuracy say whether drops alone are visible to it.
     python benchmarks/diagnose_drops.py --runs NAME=RUN_DIR,... --plot OUT.png
 
 plots the generated and real drop rates of training runs against the step
-(from their metrics.jsonl) and writes them with --json.
+(from their metrics.jsonl) and writes them with --json (under 'runs').
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+import common
 
 
 SETTINGS = {
@@ -143,9 +145,7 @@ def trajectories(runs: dict, plot: str):
                  ('drop_rate', 'real_drop_rate', 'd_real', 'd_fake')}
     out[name]['step'] = steps
   if plot:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, r in out.items():
       ax.plot(r['step'], r['drop_rate'], label=name)
@@ -173,6 +173,7 @@ def main(argv=None):
   ap.add_argument('--steps', type=int, default=300)
   ap.add_argument('--settings', default='', help='names separated by ; (default: all)')
   a = ap.parse_args(argv)
+  common.print_banner()
   if a.runs:
     runs = dict(item.split('=', 1) for item in a.runs.split(','))
     out = trajectories(runs, a.plot)
@@ -180,14 +181,12 @@ def main(argv=None):
       print(f'{name:40s} drop rate at steps {r["step"][::10]}: '
             + ' '.join(f'{v:.3f}' for v in r['drop_rate'][::10]))
     if a.json:
-      with open(a.json, 'w') as f:
-        json.dump(out, f)
+      common.write_json(a.json, {'runs': out}, indent=None)
     return
   if a.can_d_see_drops:
     out = can_d_see_drops(a.steps, only=[s for s in a.settings.split(';') if s])
     if a.json:
-      with open(a.json, 'w') as f:
-        json.dump(out, f, indent=1)
+      common.write_json(a.json, {'settings': out}, indent=1)
     return
   if not a.workdir:
     ap.error('--workdir is required (or --can-d-see-drops)')
@@ -233,8 +232,7 @@ def main(argv=None):
   for k, v in rows.items():
     print(f'{k:40s} {v}')
   if a.json:
-    with open(a.json, 'w') as f:
-      json.dump(rows, f, indent=1)
+    common.write_json(a.json, rows, indent=1)
 
 
 if __name__ == '__main__':

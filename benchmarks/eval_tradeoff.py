@@ -14,13 +14,11 @@ the cheapest setting whose metric means stay within the seed-to-seed spread
 """
 
 import argparse
-import json
 import os
-import time
 
-import jax
 import numpy as np
 
+import common
 from dusty_jax import projection, writers
 from dusty_jax.data import synthetic
 from dusty_jax.metrics import protocol
@@ -38,6 +36,7 @@ def main():
                   help='skip (and extrapolate) settings slower than this, s')
   ap.add_argument('--out', default=os.path.join(os.path.dirname(__file__), 'results'))
   a = ap.parse_args()
+  info = common.print_banner()
   sensor = get_sensor('kitti')
   sizes = sorted(map(int, a.sizes.split(',')))
   points = sorted(map(int, a.points.split(',')))
@@ -64,9 +63,9 @@ def main():
       times = []
       for s in range(a.seeds):
         gen = pool[n * (s + 1): n * (s + 2)]
-        t = time.perf_counter()
-        m = protocol.compare(ref, gen, angles, sensor=sensor, num_points=p, seed=s)
-        times.append(time.perf_counter() - t)
+        dt, m = common.seconds(lambda: protocol.compare(ref, gen, angles, sensor=sensor,
+                                                        num_points=p, seed=s))
+        times.append(dt)
         for k in METRICS:
           vals[k].append(m[k])
       sec = float(np.median(times))
@@ -89,10 +88,9 @@ def main():
         f'({cheapest["seconds"]:.1f} s vs {full["seconds"]:.1f} s). MMD scales with '
         'the point count (denser clouds, smaller distances), so it is compared only '
         'at equal points.')
-  os.makedirs(a.out, exist_ok=True)
-  with open(os.path.join(a.out, 'eval_tradeoff.json'), 'w') as f:
-    json.dump(dict(rows=rows, seeds=a.seeds, cheapest=cheapest, full=full,
-                   device=jax.devices()[0].device_kind, cpus=os.cpu_count()), f, indent=2)
+  common.write_json(os.path.join(a.out, 'eval_tradeoff.json'), dict(
+      rows=rows, seeds=a.seeds, cheapest=cheapest, full=full,
+      device=info['device_kind'], cpus=info['cpus']))
   series = {}
   for p in points:
     rs = [r for r in rows if r['points'] == p and r['seconds']]

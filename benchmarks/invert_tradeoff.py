@@ -17,14 +17,12 @@ names the cheapest setting within 5% of the 1000-iteration error.
 """
 
 import argparse
-import json
 import os
-import statistics
-import time
 
 import jax
 import numpy as np
 
+import common
 from dusty_jax import configs, inversion, projection, sampling, trainer, writers
 from dusty_jax.sensor import get_sensor
 
@@ -58,6 +56,7 @@ def main():
   ap.add_argument('--iters', default=','.join(map(str, ITERS)))
   ap.add_argument('--out', default=os.path.join(os.path.dirname(__file__), 'results'))
   a = ap.parse_args()
+  info = common.print_banner()
   if a.workdir:
     import dusty_jax
     from dusty_jax.data import arrays, pipeline
@@ -70,14 +69,12 @@ def main():
     params = random_generator()
     target = sampling.sample(params, jax.random.key(42), a.batch)['scan']
     source = 'own samples of a random-weight full-size DUSty-I generator'
-  print(f'{source}; batch {a.batch}; {jax.devices()[0].device_kind}, '
-        f'{os.cpu_count()} CPUs, jax {jax.__version__}')
+  print(f'{source}; batch {a.batch}')
   rows = []
   for n in map(int, a.iters.split(',')):
-    jax.block_until_ready(inversion.invert(params, target, num_steps=n))  # compile
-    t = time.perf_counter()
-    res = jax.block_until_ready(inversion.invert(params, target, num_steps=n))
-    dt = time.perf_counter() - t
+    # One timed run after one that compiles.
+    t = common.timed(lambda: inversion.invert(params, target, num_steps=n), 1)
+    dt, res = t.median, t.result
     l1, absrel = errors(params, target, res)
     rows.append(dict(iterations=n, l1=l1, abs_rel=absrel, s_per_scan=dt / a.batch,
                      ms_per_scan_iter=dt / a.batch / n * 1e3))
@@ -89,13 +86,8 @@ def main():
   for b in (1, 32):
     tgt = sampling.sample(params, jax.random.key(7), b)['scan']
     n = 50
-    jax.block_until_ready(inversion.invert(params, tgt, num_steps=n))
-    ts = []
-    for _ in range(3):
-      t = time.perf_counter()
-      jax.block_until_ready(inversion.invert(params, tgt, num_steps=n))
-      ts.append(time.perf_counter() - t)
-    speed[b] = statistics.median(ts) / n * 1e3
+    t = common.timed(lambda: inversion.invert(params, tgt, num_steps=n), 3)
+    speed[b] = t.median / n * 1e3
     print(f'  batch {b:2d}: {speed[b]:.1f} ms per iteration '
           f'({speed[b] / b:.1f} ms per scan-iteration), median of 3 x {n} iters')
   ref = rows[-1]['l1']
@@ -103,12 +95,10 @@ def main():
   cheapest = min(ok, key=lambda r: r['iterations'])
   print(f'cheapest within 5% of the {rows[-1]["iterations"]}-iteration L1 error: '
         f'{cheapest["iterations"]} iterations ({cheapest["s_per_scan"]:.2f} s/scan)')
-  os.makedirs(a.out, exist_ok=True)
-  with open(os.path.join(a.out, 'invert_tradeoff.json'), 'w') as f:
-    json.dump(dict(source=source, batch=a.batch, rows=rows,
-                   ms_per_iter_batch1=speed[1], ms_per_scan_iter_batch32=speed[32] / 32,
-                   cheapest_within_5pct=cheapest['iterations'],
-                   device=jax.devices()[0].device_kind, cpus=os.cpu_count()), f, indent=2)
+  common.write_json(os.path.join(a.out, 'invert_tradeoff.json'), dict(
+      source=source, batch=a.batch, rows=rows, ms_per_iter_batch1=speed[1],
+      ms_per_scan_iter_batch32=speed[32] / 32, cheapest_within_5pct=cheapest['iterations'],
+      device=info['device_kind'], cpus=info['cpus']))
   its = [r['iterations'] for r in rows]
   writers.line_plot(os.path.join(a.out, 'invert_tradeoff.png'),
                     {'L1 error (inverse depth)': (its, [r['l1'] for r in rows])},

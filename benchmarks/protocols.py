@@ -21,19 +21,17 @@ Prints the figures and writes benchmarks/results/protocols.json.
 
 import argparse
 import importlib
-import json
 import os
-import time
 import types
 
 import jax
 import numpy as np
 
+import common
 from dusty_jax import configs, projection
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import chamfer, clouds, point_sets, protocol, swd
 from dusty_jax.sensor import from_config
-from study import machine_banner
 
 POINT_METRICS = ('jsd', 'cov', 'mmd', '1nna')
 
@@ -63,6 +61,7 @@ def main():
   ap.add_argument('--out', default=os.path.join(os.path.dirname(__file__), 'results',
                                                 'protocols.json'))
   a = ap.parse_args()
+  common.print_banner()
   config = configs.default()  # the data of experiments/synthetic.py
   config.sensor.preset = 'kitti'
   config.data.num_synthetic = 2000
@@ -75,8 +74,8 @@ def main():
       d, 'train', sensor)[:n])
   real = np.asarray(projection.encode(real_depth, sensor))
   fake = np.asarray(projection.encode(fake_depth, sensor))
-  print(f'{machine_banner()}; {n} clouds a set, {p} points, data {d}')
-  out = dict(num=n, points=p, machine=machine_banner(), data=d)
+  print(f'{n} clouds a set, {p} points, data {d}')
+  out = dict(num=n, points=p, data=d)
 
   # --- FPS -------------------------------------------------------------------
   valid = np.asarray(projection.valid_depth(real_depth, sensor))
@@ -88,9 +87,10 @@ def main():
   t = {}
   for proto in ('reference', 'paper'):
     sets[proto] = [protocol.prepare_set(real, angles, sensor, p, protocol=proto)[0]]
-    t0 = time.perf_counter()  # the second set: compiled already
-    sets[proto].append(protocol.prepare_set(fake, angles, sensor, p, protocol=proto)[0])
-    t[proto] = (time.perf_counter() - t0) / n * 1e3
+    dt, prepared = common.seconds(  # the second set: compiled already
+        lambda: protocol.prepare_set(fake, angles, sensor, p, protocol=proto))
+    sets[proto].append(prepared[0])
+    t[proto] = dt / n * 1e3
   paper_real = sets['paper'][0]
   stats['paper_clouds_with_origin'] = float(np.mean((paper_real == 0).all(-1).any(-1)))
   stats['paper_points_nearer'] = float(np.mean(
@@ -140,10 +140,8 @@ def main():
   # --- end to end ------------------------------------------------------------
   e2e = {}
   for proto in ('reference', 'paper'):
-    t0 = time.perf_counter()
-    e2e[proto] = protocol.compare(real, fake, angles, sensor=sensor, protocol=proto,
-                                  num_points=p, seed=0)
-    e2e[f'{proto}_seconds'] = time.perf_counter() - t0
+    e2e[f'{proto}_seconds'], e2e[proto] = common.seconds(lambda: protocol.compare(
+        real, fake, angles, sensor=sensor, protocol=proto, num_points=p, seed=0))
     e2e[f'{proto}_identical'] = protocol.compare(real, real, angles, sensor=sensor,
                                                  protocol=proto, num_points=p, seed=0)
   e2e['relative'] = relative(e2e['reference'], e2e['paper'])
@@ -182,9 +180,10 @@ def main():
   params = types.SimpleNamespace(sensor=sensor)
   cd = {}
   for proto in ('reference', 'paper'):
-    t0 = time.perf_counter()
-    cd[proto] = invert.evaluate_batch(params, target, result, angles, proto)['cd'].tolist()
-    cd[f'{proto}_seconds_per_scan'] = (time.perf_counter() - t0) / r
+    dt, errs = common.seconds(
+        lambda: invert.evaluate_batch(params, target, result, angles, proto))
+    cd[proto] = errs['cd'].tolist()
+    cd[f'{proto}_seconds_per_scan'] = dt / r
   cd['ratio'] = [b / a_ for a_, b in zip(cd['reference'], cd['paper'])]
   cd['valid_fraction'] = valid[:r].mean(axis=(1, 2)).tolist()
   out['reconstruction_cd'] = cd
@@ -194,10 +193,7 @@ def main():
         f'{np.mean(cd["valid_fraction"]):.2f}); {cd["reference_seconds_per_scan"]:.2f} / '
         f'{cd["paper_seconds_per_scan"]:.2f} s per scan')
 
-  os.makedirs(os.path.dirname(a.out), exist_ok=True)
-  with open(a.out, 'w') as f:
-    json.dump(out, f, indent=2)
-  print(f'saved {a.out}')
+  print(f'saved {common.write_json(a.out, out)}')
 
 
 if __name__ == '__main__':

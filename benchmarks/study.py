@@ -35,6 +35,8 @@ import time
 
 import numpy as np
 
+import common
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug')
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
@@ -231,11 +233,9 @@ def trade(params, split, a):
   target = np.asarray(projection.encode(obs, sensor))
   rows = []
   for it in TRADE_ITERS:
-    jax.block_until_ready(inversion.invert(params, target, num_steps=it))  # compile
-    t = time.perf_counter()
-    res = jax.device_get(jax.block_until_ready(
-        inversion.invert(params, target, num_steps=it)))
-    dt = time.perf_counter() - t
+    # One timed run after one that compiles.
+    t = common.timed(lambda: jax.device_get(inversion.invert(params, target, num_steps=it)), 1)
+    dt, res = t.median, t.result
     g = ground_truth.disentanglement(sensor, res['inv_depth'], res['measurability'],
                                      obs, comp, prob)
     rows.append({'iterations': it, 's_per_scan': dt / n,
@@ -269,9 +269,7 @@ def picture_samples(models, path):
 
 
 def picture_reliability(results, path):
-  import matplotlib
-  matplotlib.use('Agg')
-  import matplotlib.pyplot as plt
+  plt = common.pyplot()
   fig, ax = plt.subplots(figsize=(5, 4.5))
   ax.plot([0, 1], [0, 1], 'k:', lw=1, label='perfectly calibrated')
   for model, r in results.items():
@@ -292,9 +290,7 @@ def picture_reliability(results, path):
 
 
 def picture_trade(trade_rows, path):
-  import matplotlib
-  matplotlib.use('Agg')
-  import matplotlib.pyplot as plt
+  plt = common.pyplot()
   its = [r['iterations'] for r in trade_rows]
   fig, ax = plt.subplots(figsize=(5.5, 4))
   ax.plot(its, [r['completion_abs_rel'] for r in trade_rows], 'o-', label='completion')
@@ -470,15 +466,9 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
   return '\n'.join(lines) + '\n'
 
 
-def machine_banner():
-  import platform
-  import jax
-  return (f'{platform.machine()} {os.cpu_count()} CPUs, '
-          f'{jax.devices()[0].device_kind}, jax {jax.__version__}')
-
-
 def main(argv=None):
   a = parse_args(argv)
+  machine = common.print_banner()['banner']
   models = [m for m in a.models.split(',') if m]
   bad = [m for m in models if m not in MODELS]
   if bad:
@@ -524,13 +514,12 @@ def main(argv=None):
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   picture_restoration(a.workdir, params_by_model, os.path.join(a.out, 'study_restoration.png'))
   kitti_file = picture_kitti(params, os.path.join(a.out, 'study_kitti.png'))
-  machine = machine_banner()
   text = report(results, trade_result, train_seconds, a, machine, kitti_file)
   with open(os.path.join(a.out, 'study.md'), 'w') as f:
     f.write(text)
-  with open(os.path.join(a.out, 'study.json'), 'w') as f:
-    json.dump({'machine': machine, 'scale': a.scale, 'train_seconds': train_seconds,
-               'results': results, 'trade': trade_result}, f, indent=1)
+  common.write_json(os.path.join(a.out, 'study.json'),
+                    {'scale': a.scale, 'train_seconds': train_seconds,
+                     'results': results, 'trade': trade_result}, indent=1)
   print(text)
   if a.export:
     from dusty_jax import pretrained

@@ -8,13 +8,12 @@ and the time 10,000 scans take at that rate.
 """
 
 import argparse
-import json
 import os
 import statistics
-import time
 
 import numpy as np
 
+import common
 from dusty_jax.data import synthetic
 from dusty_jax.sensor import get_sensor
 
@@ -26,37 +25,31 @@ def main():
   p.add_argument('--out', default=os.path.join(os.path.dirname(__file__), 'results',
                                                'synthesize.json'))
   a = p.parse_args()
+  common.print_banner()
   sensor = get_sensor('kitti')
   dirs = synthetic.ray_directions(sensor).reshape(-1, 3)
   build, cast, total = [], [], []
   for i in range(a.num):
-    t0 = time.perf_counter()
-    mesh, _, _ = synthetic.build_scene(i)
-    t1 = time.perf_counter()
-    synthetic.intersector(mesh).intersects_id(np.zeros_like(dirs), dirs,
-                                              multiple_hits=False, return_locations=True)
-    t2 = time.perf_counter()
-    synthetic.render_scan(i, sensor)
-    t3 = time.perf_counter()
-    build.append(t1 - t0); cast.append(t2 - t1); total.append(t3 - t2)
+    dt, (mesh, _, _) = common.seconds(lambda: synthetic.build_scene(i))
+    build.append(dt)
+    cast.append(common.seconds(lambda: synthetic.intersector(mesh).intersects_id(
+        np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True))[0])
+    total.append(common.seconds(lambda: synthetic.render_scan(i, sensor))[0])
   rays = len(dirs) / statistics.median(cast)
   print(f'embree: {synthetic.has_embree()}; one core, median of {a.num} scans: '
         f'build {statistics.median(build) * 1e3:.1f} ms, cast {statistics.median(cast) * 1e3:.1f} ms '
         f'({rays / 1e6:.2f} M rays/s incl. BVH build), whole scan '
         f'{statistics.median(total) * 1e3:.1f} ms')
-  t = time.perf_counter()
-  synthetic.simulate(a.num, sensor, seed=1, progress=False, workers=a.workers)
-  dt = time.perf_counter() - t
+  dt, _ = common.seconds(lambda: synthetic.simulate(a.num, sensor, seed=1, progress=False,
+                                                   workers=a.workers))
   rate = a.num / dt
   print(f'simulate, {a.workers} workers: {rate:.1f} scans/s -> 10,000 scans in '
         f'{10000 / rate / 60:.1f} min')
-  os.makedirs(os.path.dirname(a.out), exist_ok=True)
-  with open(a.out, 'w') as f:
-    json.dump(dict(embree=synthetic.has_embree(), build_ms=statistics.median(build) * 1e3,
-                   cast_ms=statistics.median(cast) * 1e3,
-                   scan_ms=statistics.median(total) * 1e3, workers=a.workers,
-                   scans_per_s=rate, minutes_per_10k=10000 / rate / 60,
-                   cpus=os.cpu_count()), f, indent=2)
+  common.write_json(a.out, dict(
+      embree=synthetic.has_embree(), build_ms=statistics.median(build) * 1e3,
+      cast_ms=statistics.median(cast) * 1e3, scan_ms=statistics.median(total) * 1e3,
+      workers=a.workers, scans_per_s=rate, minutes_per_10k=10000 / rate / 60,
+      cpus=os.cpu_count()))
 
 
 if __name__ == '__main__':

@@ -15,15 +15,12 @@ shared machines are noisy.
 """
 
 import argparse
-import json
 import os
-import platform
-import statistics
-import time
 
 import jax
 import numpy as np
 
+import common
 from dusty_jax import configs, parallel, trainer
 from dusty_jax.sensor import get_sensor
 
@@ -46,17 +43,13 @@ def time_step(impl, r1, model, batch, repeats, sensor, variant='authors'):
   x = np.random.default_rng(0).uniform(-1, 1, (batch,) + sensor.shape)
   x = parallel.shard_batch(x.astype(np.float32), mesh)
   key = jax.random.key(1)
-  t = time.perf_counter()
-  state, m = step(state, x, key)
-  jax.block_until_ready(state)
-  compile_s = time.perf_counter() - t
-  times = []
-  for _ in range(repeats):
-    t = time.perf_counter()
-    state, m = step(state, x, key)
-    jax.block_until_ready(state)
-    times.append(time.perf_counter() - t)
-  return compile_s, times
+
+  def run():
+    nonlocal state
+    state, _ = step(state, x, key)
+    return state
+
+  return common.timed(run, repeats)  # the warm-up step compiles
 
 
 def main():
@@ -72,18 +65,15 @@ def main():
   a = p.parse_args()
   sensor = get_sensor(a.sensor)
   r1_every = LAZY_EVERY
-  dev = jax.devices()[0]
-  print(f'{a.model} {sensor.height}x{sensor.width} batch {a.batch}, '
-        f'{jax.device_count()} x {dev.device_kind} ({jax.default_backend()}), '
-        f'{os.cpu_count()} CPUs, jax {jax.__version__}')
+  info = common.print_banner()
+  print(f'{a.model} {sensor.height}x{sensor.width} batch {a.batch}')
   rows = []
   for impl in a.impls.split(','):
     for variant in a.variants.split(','):
       res = {}
       for r1 in (True, False):
-        compile_s, times = time_step(impl, r1, a.model, a.batch, a.repeats, sensor,
-                                     variant)
-        med = statistics.median(times)
+        t = time_step(impl, r1, a.model, a.batch, a.repeats, sensor, variant)
+        med, times, compile_s = t.median, t.times, t.warmup[0]
         res[r1] = med
         rows.append(dict(impl=impl, variant=variant, r1=r1, median_s=med, times=times,
                          compile_s=compile_s, images_per_s=a.batch / med))
@@ -93,13 +83,9 @@ def main():
       lazy = (res[True] + (r1_every - 1) * res[False]) / r1_every
       print(f'  {impl:6s} {variant:16s} lazy R1 every {r1_every}: {lazy:6.2f} s/step '
             f'average, {a.batch / lazy:6.2f} img/s')
-  os.makedirs(os.path.dirname(a.out), exist_ok=True)
-  with open(a.out, 'w') as f:
-    json.dump(dict(model=a.model, shape=sensor.shape, batch=a.batch,
-                   device=f'{jax.device_count()} x {dev.device_kind}',
-                   backend=jax.default_backend(), cpus=os.cpu_count(),
-                   machine=platform.machine(), jax=jax.__version__,
-                   rows=rows), f, indent=2)
+  common.write_json(a.out, dict(model=a.model, shape=sensor.shape, batch=a.batch,
+                                device=f'{info["device_count"]} x {info["device_kind"]}',
+                                rows=rows))
 
 
 if __name__ == '__main__':
