@@ -29,7 +29,7 @@ import types
 import jax
 import numpy as np
 
-from dusty_jax import configs, projection
+from dusty_jax import codec, configs
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import chamfer, clouds, point_sets, protocol, swd
 from dusty_jax.sensor import from_config
@@ -73,13 +73,13 @@ def main():
   n, p = a.num, a.points
   real_depth, fake_depth = np.asarray(test[:n]), np.asarray(arrays.load_split(
       d, 'train', sensor)[:n])
-  real = np.asarray(projection.encode(real_depth, sensor))
-  fake = np.asarray(projection.encode(fake_depth, sensor))
+  real = np.asarray(codec.encode(real_depth, sensor))
+  fake = np.asarray(codec.encode(fake_depth, sensor))
   print(f'{machine_banner()}; {n} clouds a set, {p} points, data {d}')
   out = dict(num=n, points=p, machine=machine_banner(), data=d)
 
   # --- FPS -------------------------------------------------------------------
-  valid = np.asarray(projection.valid_depth(real_depth, sensor))
+  valid = np.asarray(codec.valid_depth(real_depth, sensor))
   near_m = np.sqrt(clouds.PAPER_MIN_SQUARED_NORM) * sensor.max_depth
   stats = dict(pixel0_dropped=float(np.mean(~valid[:, 0, 0])),
                valid_nearer_than_m=near_m,
@@ -156,10 +156,10 @@ def main():
   ev, pa = protocol.subset(len(test), n), protocol.subset(len(test), n, 'paper')
   sub = dict(split=len(test), linspace=ev.tolist(), paper=pa.tolist(),
              shared=len(set(ev.tolist()) & set(pa.tolist())))
-  sub_real = np.asarray(projection.encode(np.asarray(test[pa][:len(fake)]), sensor))
+  sub_real = np.asarray(codec.encode(np.asarray(test[pa][:len(fake)]), sensor))
   m_sub = protocol.compare(sub_real, fake[:len(sub_real)], angles, sensor=sensor,
                            num_points=p, seed=0)
-  m_lin = protocol.compare(np.asarray(projection.encode(np.asarray(test[ev]), sensor)),
+  m_lin = protocol.compare(np.asarray(codec.encode(np.asarray(test[ev]), sensor)),
                            fake[:len(ev)], angles, sensor=sensor, num_points=p, seed=0)
   sub.update(metrics_linspace=m_lin, metrics_paper_subset=m_sub)
   out['subset'] = sub
@@ -176,9 +176,9 @@ def main():
   drop = np.asarray(arrays.load_split(d, 'test', sensor, 'drop_prob')[:r])
   rng = np.random.default_rng(0)
   rec = np.where(rng.uniform(size=drop.shape) >= drop, complete, 0.0).astype(np.float32)
-  dep, val = projection.decode(projection.encode(rec, sensor), sensor)
-  result = {'inv_depth': np.asarray(projection.encode(complete, sensor)),
-            'valid': np.asarray(val), 'points': np.asarray(projection.to_points(dep, angles))}
+  dep, val = codec.decode(codec.encode(rec, sensor), sensor)
+  result = {'inv_depth': np.asarray(codec.encode(complete, sensor)),
+            'valid': np.asarray(val), 'points': np.asarray(codec.to_points(dep, angles))}
   params = types.SimpleNamespace(sensor=sensor)
   cd = {}
   for proto in ('reference', 'paper'):

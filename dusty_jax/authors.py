@@ -209,7 +209,7 @@ def find_config(path: str) -> str:
 def config_from_yaml(path: str):
   """Our ConfigDict (eqlr='authors') from the authors' hydra config of a run."""
   import yaml
-  from dusty_jax import configs, projection
+  from dusty_jax import codec, configs
   with open(path) as f:
     y = yaml.safe_load(f)
   try:
@@ -224,9 +224,9 @@ def config_from_yaml(path: str):
                      f'{sorted(m + "/dcgan_eqlr" for m in _ARCH)}')
   if not y['model'].get('ring', True):
     raise ValueError(f'{path}: ring=false (reflect padding) is not supported')
-  drop = float(gen.get('drop_const', projection.ALPHA))
-  if drop != projection.ALPHA:
-    raise ValueError(f'{path}: drop_const={drop}; dusty_jax drops to {projection.ALPHA}')
+  drop = float(gen.get('drop_const', codec.ALPHA))
+  if drop != codec.ALPHA:
+    raise ValueError(f'{path}: drop_const={drop}; dusty_jax drops to {codec.ALPHA}')
   depths = (float(data.get('min_depth', _DEPTHS[0])), float(data.get('max_depth', _DEPTHS[1])))
   if depths != _DEPTHS:
     raise ValueError(f'{path}: depth range {depths}; dusty_jax sensors have {_DEPTHS}')
@@ -295,10 +295,10 @@ def _weights(sd, model: str, source: str) -> tuple[dict, dict]:
     used.add(pre + 'drop_const')
   if 'drop_const' in sd:
     used.add('drop_const')
-    from dusty_jax import projection
-    if float(np.asarray(sd['drop_const'])) != projection.ALPHA:
+    from dusty_jax import codec
+    if float(np.asarray(sd['drop_const'])) != codec.ALPHA:
       raise ValueError(f'{source}: drop_const {float(np.asarray(sd["drop_const"]))}; '
-                       f'dusty_jax drops to {projection.ALPHA}')
+                       f'dusty_jax drops to {codec.ALPHA}')
   extra = sorted(set(sd) - used)
   if extra:
     raise ValueError(f'{source}: unexpected keys in the generator state dict: {extra} '

@@ -90,7 +90,7 @@ SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
 def run(a):
   import jax
   import tqdm
-  from dusty_jax import checkpoint, metrics, projection
+  from dusty_jax import checkpoint, codec, metrics
   from dusty_jax.data import arrays, pipeline
   from dusty_jax.metrics import protocol
 
@@ -98,7 +98,7 @@ def run(a):
   sensor = params.sensor
   d = pipeline.dataset_dir(config, sensor, log=print)
   test = arrays.load_split(d, 'test', sensor)
-  ref = np.asarray(projection.encode(test[protocol.subset(len(test), a.num, a.protocol)],
+  ref = np.asarray(codec.encode(test[protocol.subset(len(test), a.num, a.protocol)],
                                      sensor))
   n = len(ref)
   if n < a.num:
@@ -108,7 +108,7 @@ def run(a):
     if config.model != 'baseline':
       raise ValueError('--tune is for the baseline; DUSty needs no tolerance')
     val = arrays.load_split(d, 'val', sensor)
-    val = np.asarray(projection.encode(val[protocol.subset(len(val), a.num, a.protocol)],
+    val = np.asarray(codec.encode(val[protocol.subset(len(val), a.num, a.protocol)],
                                        sensor))
     tol = tune_tolerance(params, val, a.tune_trials, protocol=a.protocol)
     print(f'tuned tolerance beta = {tol:.5f}')
@@ -128,7 +128,7 @@ def run(a):
     train = arrays.load_split(d, 'train', sensor)
     # The authors subsample the training split by the same rule and --num.
     num_train = a.num if a.protocol == 'paper' else n
-    tr = np.asarray(projection.encode(
+    tr = np.asarray(codec.encode(
         train[protocol.subset(len(train), num_train, a.protocol)], sensor))
     m = compare(tr[:n], 0)
     rows['training set'] = {k: [v] for k, v in m.items()}

@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import models, projection, sampling
-from dusty_jax.projection import ALPHA
+from dusty_jax import models, sampling
+from dusty_jax.codec import ALPHA
 
 LR = 0.1
 RAMP_UP = 0.05
@@ -130,7 +130,7 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
       raise ValueError(
           f'scan values lie in [{finite.min():.4g}, {finite.max():.4g}], outside the '
           'normalised inverse depth [-1, 1] that invert() takes (metres given by '
-          'mistake?); encode metric depth with dusty_jax.projection.encode(depth, '
+          'mistake?); encode metric depth with dusty_jax.codec.encode(depth, '
           'params.sensor), which also marks 0 / out-of-range depths as drops')
   single = scan.ndim == 2
   if mask is not None and np.shape(mask) != scan.shape:

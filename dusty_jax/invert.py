@@ -103,16 +103,16 @@ def evaluate_batch(params, target_depth, result, angles, protocol='reference'):
   pixels of both with every dropped pixel at the origin.
   """
   import jax.numpy as jnp
-  from dusty_jax import projection
+  from dusty_jax import codec
   from dusty_jax.metrics import chamfer, clouds, depth as depth_metrics
   paper = clouds.check_protocol(protocol) == 'paper'
   sensor = params.sensor
   target_depth = np.asarray(target_depth, np.float32)
-  valid_t = np.asarray(projection.valid_depth(target_depth, sensor))
-  pred = projection.complete_depth(result['inv_depth'], sensor)
+  valid_t = np.asarray(codec.valid_depth(target_depth, sensor))
+  pred = codec.complete_depth(result['inv_depth'], sensor)
   errs = {k: np.asarray(v) for k, v in
           depth_metrics.depth_errors(pred, target_depth, valid_t).items()}
-  pts_t = np.asarray(projection.to_points(np.where(valid_t, target_depth, 0.0),
+  pts_t = np.asarray(codec.to_points(np.where(valid_t, target_depth, 0.0),
                                           angles)) / sensor.max_depth
   pts_r = np.asarray(result['points']) / sensor.max_depth
   valid_r = np.asarray(result['valid'])
@@ -143,10 +143,10 @@ def ground_truth(directory, split, sensor, num):
 def complete_depth_errors(params, result, complete):
   """Errors of x_tilde against the simulator's complete depth (every pixel a
   perfect sensor returns, dropped or not)."""
-  from dusty_jax import projection
+  from dusty_jax import codec
   from dusty_jax.metrics import depth as depth_metrics
-  pred = projection.complete_depth(result['inv_depth'], params.sensor)
-  mask = np.asarray(projection.valid_depth(complete, params.sensor))
+  pred = codec.complete_depth(result['inv_depth'], params.sensor)
+  mask = np.asarray(codec.valid_depth(complete, params.sensor))
   out = depth_metrics.depth_errors(pred, complete, mask)
   out = {k: np.asarray(v) for k, v in out.items() if k != 'count'}
   out['cd'] = np.full(len(complete), np.nan)
@@ -201,7 +201,7 @@ def run(a):
   import jax
   import tqdm
   import trimesh
-  from dusty_jax import checkpoint, corrupt, projection, writers
+  from dusty_jax import checkpoint, codec, corrupt, writers
   from dusty_jax.data import arrays, pipeline
 
   if bool(a.input) == bool(a.split):
@@ -226,7 +226,7 @@ def run(a):
                            file=sys.stderr):
     chunk = items[start:start + a.batch]
     depth = np.stack([np.nan_to_num(d, nan=0.0, posinf=0.0) for _, d in chunk])
-    clean = projection.encode(depth, sensor)
+    clean = codec.encode(depth, sensor)
     k = jax.random.fold_in(key, start)
     target = corrupt.apply(a.corrupt, k, clean, sensor) if a.corrupt else clean
     keys = jax.vmap(lambda i: jax.random.fold_in(k, i))(jax.numpy.arange(len(chunk)))

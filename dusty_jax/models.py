@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from dusty_jax import gumbel, layers
-from dusty_jax.projection import ALPHA
+from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import SensorSpec
 
 MODELS = {'baseline': 1, 'dusty1': 2, 'dusty2': 3}  # output channels.

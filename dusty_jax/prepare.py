@@ -20,7 +20,8 @@ import warnings
 import numpy as np
 import tqdm
 
-from dusty_jax import projection
+from dusty_jax import codec
+from dusty_jax.data import unfolding
 from dusty_jax.data import arrays, kitti, mpo
 from dusty_jax.sensor import SensorSpec, get_sensor
 
@@ -32,7 +33,7 @@ MIN_RING_FRACTION = 0.25
 
 def junk_reason(depth, sensor: SensorSpec) -> str | None:
   """Why an unfolded scan is too sparse to train on, or None."""
-  valid = np.asarray(projection.valid_depth(depth, sensor))
+  valid = np.asarray(codec.valid_depth(depth, sensor))
   frac = valid.mean()
   rings = int(valid.any(axis=1).sum())
   if frac < MIN_VALID_FRACTION:
@@ -90,7 +91,7 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
   os.makedirs(out, exist_ok=True)
   meta = {'dataset': dataset, 'sensor': sensor.name, 'shape': list(sensor.shape),
           'splits': {}, 'skipped': {}}
-  acc = projection.AngleAccumulator(sensor)
+  acc = unfolding.AngleAccumulator(sensor)
   listed = {split: reader.list_split(root, split) for split in splits}
   if not any(listed.values()):
     raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '

@@ -8,13 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import models, projection
+from dusty_jax import codec, models
 
 
 def decode_scan(params: models.GeneratorParams, scan):
   """Measured depth, validity and points (in metres) of generated scans."""
-  depth, valid = projection.decode(scan, params.sensor, params.tolerance)
-  points = projection.to_points(depth, params.angles)
+  depth, valid = codec.decode(scan, params.sensor, params.tolerance)
+  points = codec.to_points(depth, params.angles)
   return depth, valid, points
 
 

@@ -31,7 +31,7 @@ import numpy as np
 import optax
 from jax import lax
 
-from dusty_jax import augment, configs, losses, models, projection
+from dusty_jax import augment, codec, configs, losses, models
 from dusty_jax.sensor import SensorSpec
 
 AXIS = 'data'
@@ -65,7 +65,7 @@ class Setup:
   batch_size: int = flax.struct.field(pytree_node=False)
   policy: tuple = flax.struct.field(pytree_node=False)
   augment_style: str = flax.struct.field(pytree_node=False, default='authors')
-  drop_const: float = flax.struct.field(pytree_node=False, default=projection.ALPHA)
+  drop_const: float = flax.struct.field(pytree_node=False, default=codec.ALPHA)
 
 
 legacy_get = configs.legacy_get
@@ -88,8 +88,8 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
   style = legacy_get(config, 'augment_style')
   augment.check(policy, style)
   drop_const = float(legacy_get(config, 'drop_const'))
-  if drop_const > projection.ALPHA:
-    raise ValueError(f'drop_const={drop_const}: must be <= {projection.ALPHA} '
+  if drop_const > codec.ALPHA:
+    raise ValueError(f'drop_const={drop_const}: must be <= {codec.ALPHA} '
                      '(inside the depth range a drop would read as a surface)')
   return Setup(g, d, tx(), tx(r1_every if config.r1_gamma > 0 else 1),
                config.model, sensor, config.latent_dim,
@@ -128,7 +128,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   # whatever the number of devices, so 1- and N-device runs agree.
   b = batch.shape[0]
   # Drops in the discriminator's input take the drop constant (ALPHA: as is).
-  batch = jnp.where(batch <= projection.ALPHA, setup.drop_const, batch)
+  batch = jnp.where(batch <= codec.ALPHA, setup.drop_const, batch)
   key = jax.random.fold_in(key, state.step)
   ids = lax.axis_index(axis_name) * b + jnp.arange(b)
   keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 5))(ids)
@@ -195,9 +195,9 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
                      state.ema_params, g_params)
   # 'r1' is 0 on steps that skip the penalty.
   metrics = dict(d_metrics, loss_g=loss_g,
-                 drop_rate=jnp.mean(fake <= projection.ALPHA),
+                 drop_rate=jnp.mean(fake <= codec.ALPHA),
                  mask_drop_rate=jnp.mean(mask < 0.5),
-                 real_drop_rate=jnp.mean(batch <= projection.ALPHA))
+                 real_drop_rate=jnp.mean(batch <= codec.ALPHA))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,

@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-from dusty_jax import metrics, projection
+from dusty_jax import codec, metrics
 from dusty_jax.metrics import chamfer, point_sets, protocol
 
 HERE = os.path.dirname(__file__)
@@ -21,7 +21,7 @@ def _scans(sensor, n, seed=0, drop=0.0):
   d = rng.uniform(3, 60, (n,) + sensor.shape).astype(np.float32)
   d[:, :2] = 0
   d[rng.uniform(size=d.shape) < drop] = 0
-  return np.asarray(projection.encode(d, sensor)), d
+  return np.asarray(codec.encode(d, sensor)), d
 
 
 def test_compare_identical_and_separated_sets(tiny):
@@ -32,7 +32,7 @@ def test_compare_identical_and_separated_sets(tiny):
   assert set(m) == {'jsd', 'cov', 'mmd', '1nna', 'swd'}
   assert m['cov'] == 1.0 and m['mmd'] < 1e-7 and abs(m['jsd']) < 1e-12
   assert cache['d_rr'].shape == (6, 6) and cache['real_clouds'].shape == (6, 64, 3)
-  far = np.asarray(projection.encode(d * 0.3, tiny))
+  far = np.asarray(codec.encode(d * 0.3, tiny))
   m2 = metrics.compare(x, far, angles, sensor=tiny, num_points=64, cache=cache)
   assert m2['1nna'] == 1.0 and m2['jsd'] > 0.1 and m2['mmd'] > 0
   # The cache holds the real side only: reusing it changes nothing.
@@ -133,7 +133,7 @@ def test_tolerance_tuning_baseline(tiny):
   rng = np.random.default_rng(1)
   d = rng.uniform(3, 60, (8,) + tiny.shape).astype(np.float32)
   d[rng.uniform(size=d.shape) < 0.2] = 0
-  val = np.asarray(projection.encode(d, tiny))
+  val = np.asarray(codec.encode(d, tiny))
   beta = evaluate.tune_tolerance(params, val, trials=6, points=32)
   assert 1e-3 <= beta <= 1e-1
   gen = evaluate._sample_scans(params, jax.random.key(0), len(val))
@@ -161,18 +161,18 @@ def test_reconstruction_errors_both_protocols(tiny):
   target[:, 0, :4] = 119.0  # far returns, reconstructed as x_tilde = -1
   rec = target * rng.uniform(0.9, 1.1, target.shape).astype(np.float32)
   rec[rng.uniform(size=rec.shape) < 0.2] = 0
-  x_tilde = np.array(projection.encode(np.where(rec > 0, rec, 50.0), tiny))
+  x_tilde = np.array(codec.encode(np.where(rec > 0, rec, 50.0), tiny))
   x_tilde[:, 0, :4] = -1.0
-  scan = np.asarray(projection.encode(rec, tiny))
-  depth, valid = projection.decode(scan, tiny)
+  scan = np.asarray(codec.encode(rec, tiny))
+  depth, valid = codec.decode(scan, tiny)
   result = {'inv_depth': x_tilde, 'valid': np.asarray(valid),
-            'points': np.asarray(projection.to_points(depth, angles))}
+            'points': np.asarray(codec.to_points(depth, angles))}
   params = types.SimpleNamespace(sensor=tiny)
   ref = invert.evaluate_batch(params, target, result, angles)
   paper = invert.evaluate_batch(params, target, result, angles, 'paper')
-  pts_t = np.asarray(projection.to_points(target, angles)) / 120.0
+  pts_t = np.asarray(codec.to_points(target, angles)) / 120.0
   pts_r = result['points'] / 120.0
-  vt = np.asarray(projection.valid_depth(target, tiny))
+  vt = np.asarray(codec.valid_depth(target, tiny))
   for i in range(2):
     want_ref = _cd_kdtree(pts_t[i][vt[i]], pts_r[i][result['valid'][i]])
     full_t = np.where(vt[i][..., None], pts_t[i], 0).reshape(-1, 3)

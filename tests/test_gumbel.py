@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dusty_jax import gumbel, models
-from dusty_jax.projection import ALPHA
+from dusty_jax.codec import ALPHA
 
 
 def test_mask_frequency_matches_sigmoid():

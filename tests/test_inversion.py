@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import corrupt, inversion, projection, sampling
-from dusty_jax.projection import ALPHA
+from dusty_jax import codec, corrupt, inversion, sampling
+from dusty_jax.codec import ALPHA
 
 HERE = os.path.dirname(__file__)
 
@@ -95,14 +95,14 @@ def test_all_models_invert(tiny, tmp_path):
 
 def test_corruptions(tiny):
   d = np.random.default_rng(0).uniform(2, 80, (4,) + tiny.shape).astype(np.float32)
-  x = projection.encode(d, tiny)
+  x = codec.encode(d, tiny)
   dropped = corrupt.apply('drop:0.9', jax.random.key(0), x, tiny)
   kept = float(np.mean(np.asarray(dropped) > ALPHA))
   assert 0.06 < kept < 0.14
   beams = np.asarray(corrupt.apply('beams:4', None, x, tiny))
   assert (beams[:, 1::4] == ALPHA).all() and (beams[:, ::4] == np.asarray(x)[:, ::4]).all()
   noisy = corrupt.apply('noise:0.01', jax.random.key(1), x, tiny)
-  nd, nv = projection.decode(noisy, tiny)
+  nd, nv = codec.decode(noisy, tiny)
   resid = (np.asarray(nd) - d)[np.asarray(nv)]
   assert abs(resid.std() - 0.01 * (120 - 0.9)) < 0.1
   same = corrupt.apply('drop:0.5', jax.random.key(3), x, tiny)
@@ -175,7 +175,7 @@ def test_render_drops_on_clean_scan(gen):
 
 def test_bad_inputs_get_clear_errors(gen, tiny):
   t = _targets(gen, n=1)[0]
-  depth, _ = projection.decode(t, gen.sensor)
+  depth, _ = codec.decode(t, gen.sensor)
   with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*projection\.encode'):
     inversion.invert(gen, depth, num_steps=2)  # metres by mistake
   with pytest.raises(ValueError, match='num_steps'):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import pretrained, projection, trainer
+from dusty_jax import codec, pretrained, trainer
 from train_helpers import tiny_config
 
 
@@ -47,7 +47,7 @@ def test_trained_dusty1_fits_and_completes_a_held_out_simulated_scan():
   from dusty_jax.metrics import ground_truth
   params = dusty_jax.load_pretrained('sim-dusty1')
   s = synthetic.render_scan(7_000_001, params.sensor)
-  target = projection.encode(s.depth, params.sensor)
+  target = codec.encode(s.depth, params.sensor)
   rec = dusty_jax.invert(params, target, num_steps=300, key=jax.random.key(0))
   g = ground_truth.disentanglement(params.sensor, rec['inv_depth'][None],
                                    rec['measurability'][None], s.depth[None],

@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.data import arrays
 from dusty_jax.sensor import SensorSpec
 
@@ -68,4 +68,4 @@ class Batches:
     rng = np.random.default_rng((self.seed, step))
     idx = rng.integers(0, len(self.depth), self.global_batch)
     idx = np.sort(idx[self.offset:self.offset + self.local])
-    return np.asarray(projection.encode(self.depth[idx], self.sensor))
+    return np.asarray(codec.encode(self.depth[idx], self.sensor))

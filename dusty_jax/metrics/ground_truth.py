@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.metrics import calibration
 
 
@@ -80,11 +80,11 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
   """
   observed = np.asarray(observed, np.float64)
   complete = np.asarray(complete, np.float64)
-  valid_obs = np.asarray(projection.valid_depth(observed, sensor))
-  surface = np.asarray(projection.valid_depth(complete, sensor))
+  valid_obs = np.asarray(codec.valid_depth(observed, sensor))
+  surface = np.asarray(codec.valid_depth(complete, sensor))
   completion = surface & ~valid_obs
   covered = completion if renders_drop is None else completion & ~np.asarray(renders_drop, bool)
-  pred = np.asarray(projection.complete_depth(inv_depth, sensor), np.float64)
+  pred = np.asarray(codec.complete_depth(inv_depth, sensor), np.float64)
   m = np.clip(np.asarray(measurability, np.float64), 0.0, 1.0)
   truth = 1.0 - np.asarray(drop_prob, np.float64)
   returned = valid_obs.astype(np.float64)
