@@ -191,10 +191,10 @@ def main(argv=None):
     return
   if not a.workdir:
     ap.error('--workdir is required (or --can-d-see-drops)')
-  from dusty_jax import checkpoint, codec, models, sensor as sensor_lib, trainer
+  from dusty_jax import checkpoint, codec, configs, models, sensor as sensor_lib, trainer
   from dusty_jax.data import arrays, pipeline
 
-  config = checkpoint.load_config(a.workdir)
+  config = configs.load(a.workdir)
   sensor = sensor_lib.from_config(config.sensor)
   setup = trainer.make_setup(config, sensor)
   target = trainer.init_state(setup, jax.random.key(0))

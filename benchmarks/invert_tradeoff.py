@@ -36,7 +36,7 @@ def random_generator():
   sensor = get_sensor('kitti')
   setup = trainer.make_setup(c, sensor)
   state = trainer.init_state(setup, jax.random.key(0))
-  return trainer.generator_bundle(setup, state.g_params, sensor.nominal_angles())
+  return trainer.generator_params(setup, state.g_params, sensor.nominal_angles())
 
 
 def errors(params, target, result):

@@ -20,11 +20,9 @@ Prints the figures and writes benchmarks/results/protocols.json.
 """
 
 import argparse
-import importlib
 import json
 import os
 import time
-import types
 
 import jax
 import numpy as np
@@ -169,7 +167,7 @@ def main():
   show('paper subset (reference metrics)', m_sub)
 
   # --- Table III Chamfer -------------------------------------------------------
-  invert = importlib.import_module('dusty_jax.invert')
+  from dusty_jax.metrics import reconstruction
   r = a.recon
   target = real_depth[:r]
   complete = np.asarray(arrays.load_split(d, 'test', sensor, 'complete')[:r])
@@ -179,11 +177,10 @@ def main():
   dep, val = codec.decode(codec.encode(rec, sensor), sensor)
   result = {'inv_depth': np.asarray(codec.encode(complete, sensor)),
             'valid': np.asarray(val), 'points': np.asarray(codec.to_points(dep, angles))}
-  params = types.SimpleNamespace(sensor=sensor)
   cd = {}
   for proto in ('reference', 'paper'):
     t0 = time.perf_counter()
-    cd[proto] = invert.evaluate_batch(params, target, result, angles, proto)['cd'].tolist()
+    cd[proto] = reconstruction.errors(target, result, angles, sensor, proto)['cd'].tolist()
     cd[f'{proto}_seconds_per_scan'] = (time.perf_counter() - t0) / r
   cd['ratio'] = [b / a_ for a_, b in zip(cd['reference'], cd['paper'])]
   cd['valid_fraction'] = valid[:r].mean(axis=(1, 2)).tolist()

@@ -142,7 +142,7 @@ def renders_drop(params, inv_depth):
 
 def synthesis(params, config, split, a):
   import jax
-  from dusty_jax import codec, evaluate
+  from dusty_jax import codec, sampling
   from dusty_jax.metrics import protocol
   sensor = params.sensor
   test = split('test')
@@ -153,11 +153,13 @@ def synthesis(params, config, split, a):
   if params.model == 'baseline':
     val = split('val')
     val = np.asarray(codec.encode(val[protocol.evenly(len(val), n)], sensor))
-    tol = evaluate.tune_tolerance(params, val, a.tune_trials, points=a.points)
+    gen = sampling.sample_scans(params, jax.random.key(0), len(val))
+    tol = protocol.tune_tolerance(val, gen, params.angles, sensor, a.tune_trials,
+                                  points=a.points)
   rows = {k: [] for k, _, _ in protocol.ROW_SCALES}
   cache = {}
   for seed in range(a.seeds):
-    gen = evaluate._sample_scans(params, jax.random.key(1000 + seed), n)
+    gen = sampling.sample_scans(params, jax.random.key(1000 + seed), n)
     m = protocol.compare(ref, gen, params.angles, sensor=sensor, num_points=a.points,
                          seed=seed, tolerance=tol, cache=cache, progress=True)
     for k in rows:
@@ -189,11 +191,9 @@ def disentangle(params, split, a, name):
 
 
 def restoration(params, split, a, name):
-  import importlib
   import jax
   from dusty_jax import codec, corrupt
-  from dusty_jax.metrics import ground_truth
-  invert_cli = importlib.import_module('dusty_jax.invert')  # the module, not the function
+  from dusty_jax.metrics import ground_truth, reconstruction
   sensor = params.sensor
   n = min(a.num_restore, len(split('test')))
   obs, comp = split('test')[:n], split('test', 'complete')[:n]
@@ -204,7 +204,7 @@ def restoration(params, split, a, name):
     target = np.asarray(corrupt.apply(spec, key, clean, sensor))
     res = invert_batched(params, target, a.invert_steps, key,
                          desc=f'{name}: {spec}')
-    errs = invert_cli.evaluate_batch(params, obs, res, np.asarray(params.angles))
+    errs = reconstruction.errors(obs, res, np.asarray(params.angles), sensor)
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
     pred = np.asarray(codec.complete_depth(res['inv_depth'], sensor), np.float64)
     surface = np.asarray(codec.valid_depth(comp, sensor))

@@ -26,6 +26,7 @@ import optax
 
 from dusty_jax import models, sampling
 from dusty_jax.codec import ALPHA
+from dusty_jax.generator import GeneratorParams
 
 LR = 0.1
 RAMP_UP = 0.05
@@ -97,7 +98,7 @@ def _invert(params, scans, masks, keys, num_steps, lr, impl):
   return out
 
 
-def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
+def invert(params: GeneratorParams, scan, mask=None, *, key=None,
            num_steps: int = 1000, lr: float = LR, impl: str | None = None):
   """Reconstructs scans by latent search.
 
@@ -163,7 +164,7 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
   return out
 
 
-def render_drops(params: models.GeneratorParams, scan, *, key=None,
+def render_drops(params: GeneratorParams, scan, *, key=None,
                  num_samples: int = 1, num_steps: int = 1000,
                  impl: str | None = None):
   """Gives a clean scan (e.g. a simulated one) realistic point-drops.

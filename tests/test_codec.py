@@ -71,15 +71,10 @@ def test_complete_depth_reads_alpha_as_max_range(kitti):
 
 def test_reconstruction_errors_of_a_far_x_tilde(tiny):
   """A target at 119 m reconstructed as x_tilde = -1 (120 m) is nearly exact."""
-  import importlib
-  import jax.numpy as jnp
-  from dusty_jax import models
-  invert_cli = importlib.import_module('dusty_jax.invert')
-  params = models.GeneratorParams(variables={}, angles=jnp.asarray(tiny.nominal_angles()),
-                                  sensor=tiny)
+  from dusty_jax.metrics import reconstruction
   target = np.full((1,) + tiny.shape, 119.0, np.float32)
   x = -np.ones((1,) + tiny.shape, np.float32)
   pts = np.zeros((1,) + tiny.shape + (3,), np.float32)
   res = {'inv_depth': x, 'points': pts, 'valid': np.zeros((1,) + tiny.shape, bool)}
-  errs = invert_cli.evaluate_batch(params, target, res, np.asarray(tiny.nominal_angles()))
+  errs = reconstruction.errors(target, res, np.asarray(tiny.nominal_angles()), tiny)
   assert errs['abs_rel'][0] == pytest.approx(1 / 119, rel=1e-3)

@@ -86,7 +86,7 @@ def test_all_models_invert(tiny, tmp_path):
   for name in ('baseline', 'dusty2'):
     setup = trainer.make_setup(tiny_config(model=name), tiny)
     state = trainer.init_state(setup, jax.random.key(0))
-    params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles())
+    params = trainer.generator_params(setup, state.g_params, tiny.nominal_angles())
     scans, _ = _targets(params, n=2)
     out = inversion.invert(params, scans, num_steps=3)
     assert out['inv_depth'].shape == (2,) + tiny.shape
@@ -113,14 +113,6 @@ def test_corruptions(tiny):
       corrupt.parse(bad)
 
 
-def test_invert_is_callable_after_cli_import(gen):
-  import importlib
-  importlib.import_module('dusty_jax.invert')
-  scans, _ = _targets(gen, n=1)
-  out = dusty_jax.invert(gen, scans, num_steps=2)
-  assert out['latent'].shape == (1, gen.latent_dim)
-
-
 def test_cli_on_files_and_split(smoke_run, tmp_path):
   from dusty_jax.data import kitti, synthetic
   config, workdir, _ = smoke_run
@@ -133,7 +125,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
   env = dict(os.environ)
   env.pop('XLA_FLAGS', None)
   out = tmp_path / 'out'
-  r = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                       '--input', str(inp), '--corrupt', 'drop:0.5', '--out', str(out),
                       '--steps', '10'], env=env, capture_output=True, text=True,
                      timeout=600)
@@ -143,7 +135,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
       assert (out / f'{stem}{suffix}').is_file(), f'{stem}{suffix}'
   m = json.load(open(out / 'metrics.json'))
   assert len(m['per_scan']) == 3 and 'AbsRel' in r.stdout and 'CD x1e4' in r.stdout
-  r = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                       '--split', 'val', '--num', '2', '--steps', '5', '--out', str(out / 's')],
                      env=env, capture_output=True, text=True, timeout=600)
   assert r.returncode == 0, r.stderr[-3000:]
@@ -152,7 +144,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
   gt = json.load(open(out / 's' / 'metrics.json'))['ground_truth']
   assert 0 <= gt['ece'] <= 1 and np.isfinite(gt['complete_depth']['abs_rel'])
   assert (out / 's' / 'reliability.png').is_file()
-  bad = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+  bad = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                         '--input', str(tmp_path / 'missing.bin')], env=env,
                        capture_output=True, text=True)
   assert bad.returncode != 0 and 'missing.bin: no such file' in bad.stderr
@@ -176,7 +168,7 @@ def test_render_drops_on_clean_scan(gen):
 def test_bad_inputs_get_clear_errors(gen, tiny):
   t = _targets(gen, n=1)[0]
   depth, _ = codec.decode(t, gen.sensor)
-  with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*projection\.encode'):
+  with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*codec\.encode'):
     inversion.invert(gen, depth, num_steps=2)  # metres by mistake
   with pytest.raises(ValueError, match='num_steps'):
     inversion.invert(gen, t, num_steps=0)
@@ -203,17 +195,16 @@ def test_legacy_prng_key_is_one_key(gen):
 
 
 def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
-  import importlib
-  cli = importlib.import_module('dusty_jax.invert')
+  from dusty_jax.data import scan_files
   good = np.full(tiny.shape, 10.0, np.float32)
   np.save(tmp_path / 'a.npy', good)
   np.save(tmp_path / 'b.npy', np.zeros((3, 3), np.float32))  # wrong shape
   (tmp_path / 'c.bin').write_bytes(b'\0' * 20)  # not whole points
   logs = []
-  items = cli.read_inputs(str(tmp_path), tiny, log=logs.append)
+  items = scan_files.read_scans(str(tmp_path), tiny, log=logs.append)
   assert [n for n, _ in items] == ['a']
   assert any('2 of 3 input files skipped' in l for l in logs)
   assert any('b.npy' in l for l in logs) and any('c.bin' in l for l in logs)
   (tmp_path / 'a.npy').unlink()
   with pytest.raises(ValueError, match='none of 2 input files'):
-    cli.read_inputs(str(tmp_path), tiny, log=logs.append)
+    scan_files.read_scans(str(tmp_path), tiny, log=logs.append)

@@ -34,7 +34,7 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
     if not os.path.isfile(arrays.split_path(directory, 'train')):
       raise FileNotFoundError(
           f'{directory}: no prepared training split (train.npy). Prepare the '
-          f'dataset first, e.g. `python -m dusty_jax.prepare --dataset '
+          f'dataset first, e.g. `python -m dusty_jax.tools.prepare --dataset '
           f'{config.data.name or "kitti"} --root /path/to/raw --out {directory}`; '
           'or train on simulated scans with --config experiments/synthetic.py, '
           'which runs as is.')
