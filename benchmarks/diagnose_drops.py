@@ -207,7 +207,7 @@ def main(argv=None):
   d_fn = jax.jit(lambda x: setup.discriminator.apply(state.d_params, x))
   z = jax.random.normal(jax.random.key(1), (a.num, config.latent_dim))
   keys = jax.random.split(jax.random.key(2), a.num)
-  fake = jax.jit(lambda z: trainer.render_fakes(setup, state.g_params, z, keys))(z)
+  fake = jax.jit(lambda z: trainer.fake_scans(setup, state.g_params, z, keys))(z)
   grad = jax.jit(jax.grad(lambda x: d_fn(x).sum()))(jnp.asarray(x_obs))
   dropped = (x_obs <= codec.ALPHA) & (comp > 0)
   rows = {

@@ -157,8 +157,8 @@ class Discriminator(nn.Module):
     return ((x @ w) * (1.0 / math.sqrt(x.shape[-1])) + b)[:, 0]
 
 
-def render(model: str, raw, key, tau: float = 1.0, train: bool = True,
-           drop_const: float = ALPHA):
+def compose(model: str, raw, key, tau: float = 1.0, train: bool = True,
+            drop_const: float = ALPHA):
   """Generator output (B, H, W, C) -> dict of what the scan is made of.
 
   Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability logits,
@@ -183,11 +183,11 @@ def render(model: str, raw, key, tau: float = 1.0, train: bool = True,
   return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
 
 
-def render_per_example(model: str, raw, keys, tau: float = 1.0,
-                       train: bool = True, drop_const: float = ALPHA):
-  """:func:`render` with one key per example, so results do not depend on
+def compose_per_example(model: str, raw, keys, tau: float = 1.0,
+                        train: bool = True, drop_const: float = ALPHA):
+  """:func:`compose` with one key per example, so results do not depend on
   how a batch is split across devices."""
-  out = jax.vmap(lambda r, k: render(model, r[None], k, tau, train, drop_const))(
+  out = jax.vmap(lambda r, k: compose(model, r[None], k, tau, train, drop_const))(
       raw, keys)
   return jax.tree.map(lambda v: v[:, 0], out)
 

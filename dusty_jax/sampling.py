@@ -32,7 +32,7 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   """
   raw = params.module(impl).apply(params.variables, z)
-  out = models.render(params.model, raw, key, params.tau, train)
+  out = models.compose(params.model, raw, key, params.tau, train)
   if params.model == 'baseline':
     out['measurability'] = jnp.ones_like(out['inv_depth'])
   else:

@@ -117,10 +117,10 @@ def init_state(setup: Setup, key) -> TrainState:
                     ema_params=jax.tree.map(jnp.copy, g_params))
 
 
-def render_fakes(setup: Setup, params, z, keys, train=True):
+def fake_scans(setup: Setup, params, z, keys, train=True):
   """Generator forward and rendering; ``keys``: one per example."""
   raw = setup.generator.apply(params, z)
-  return models.render_per_example(setup.settings.model, raw, keys,
+  return models.compose_per_example(setup.settings.model, raw, keys,
                                    setup.settings.tau, train, setup.drop_const)
 
 
@@ -238,7 +238,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
 
   # Generator forward once; its VJP serves the G update.
   def fakes(p):
-    out = render_fakes(setup, p, z, kmask)
+    out = fake_scans(setup, p, z, kmask)
     return out['scan'], out['mask']
   fake, fake_vjp, mask = jax.vjp(fakes, _local(state.g_params, axis_name),
                                  has_aux=True)
