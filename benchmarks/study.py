@@ -206,13 +206,11 @@ def restoration(params, split, a, name):
                          desc=f'{name}: {spec}')
     errs = reconstruction.errors(obs, res, np.asarray(params.angles), sensor)
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
-    pred = np.asarray(codec.complete_depth(res['inv_depth'], sensor), np.float64)
     surface = np.asarray(codec.valid_depth(comp, sensor))
-    rd = renders_drop(params, res['inv_depth'])
-    covered = surface if rd is None else surface & ~rd
-    out[spec] = {'vs_clean': vs_clean,
-                 'vs_complete': ground_truth.depth_errors(pred, comp, covered),
-                 'coverage_complete': float(covered.sum() / max(surface.sum(), 1))}
+    vs_complete, coverage = ground_truth.completion(
+        sensor, res['inv_depth'], comp, surface, renders_drop(params, res['inv_depth']))
+    out[spec] = {'vs_clean': vs_clean, 'vs_complete': vs_complete,
+                 'coverage_complete': coverage}
     if spec == CORRUPTIONS[0]:
       np.savez_compressed(os.path.join(a.workdir, name, 'study_restore.npz'),
                           clean=clean[:4], target=target[:4],

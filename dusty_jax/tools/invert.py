@@ -1,6 +1,6 @@
 """Reconstructs or restores scans with a trained generator (GAN inversion).
 
-    python -m dusty_jax.tools.invert --workdir RUN --input FILE_OR_DIR \
+    python -m dusty_jax.tools.invert --workdir RUN --input FILE_OR_DIR \\
         [--corrupt drop:0.9|beams:8|noise:0.01] --out DIR
 
 Inputs: KITTI ``.bin`` files (unfolded with the run's sensor), or ``.npy``
