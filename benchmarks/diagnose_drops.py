@@ -61,14 +61,14 @@ SETTINGS = {
 
 def filled_scans(d, split, sensor, num, offset=0):
   """(observed, drop-filled) normalised scans of a simulated split."""
-  from dusty_jax import projection
+  from dusty_jax import codec
   from dusty_jax.data import arrays
   sl = slice(offset, offset + num)
   obs = np.asarray(arrays.load_split(d, split, sensor)[sl])
   comp = np.asarray(arrays.load_split(d, split, sensor, 'complete')[sl])
-  x_obs = np.asarray(projection.encode(obs, sensor))
-  x_fill = np.where(x_obs <= projection.ALPHA,
-                    np.asarray(projection.encode(comp, sensor)), x_obs)
+  x_obs = np.asarray(codec.encode(obs, sensor))
+  x_fill = np.where(x_obs <= codec.ALPHA,
+                    np.asarray(codec.encode(comp, sensor)), x_obs)
   return x_obs, x_fill
 
 
@@ -190,10 +190,10 @@ def main(argv=None):
     return
   if not a.workdir:
     ap.error('--workdir is required (or --can-d-see-drops)')
-  from dusty_jax import checkpoint, models, projection, sensor as sensor_lib, trainer
+  from dusty_jax import checkpoint, codec, configs, models, sensor as sensor_lib, trainer
   from dusty_jax.data import arrays, pipeline
 
-  config = checkpoint.load_config(a.workdir)
+  config = configs.load(a.workdir)
   sensor = sensor_lib.from_config(config.sensor)
   setup = trainer.make_setup(config, sensor)
   target = trainer.init_state(setup, jax.random.key(0))
@@ -206,9 +206,9 @@ def main(argv=None):
   d_fn = jax.jit(lambda x: setup.discriminator.apply(state.d_params, x))
   z = jax.random.normal(jax.random.key(1), (a.num, config.latent_dim))
   keys = jax.random.split(jax.random.key(2), a.num)
-  fake = jax.jit(lambda z: trainer.render_fakes(setup, state.g_params, z, keys))(z)
+  fake = jax.jit(lambda z: trainer.fake_scans(setup, state.g_params, z, keys))(z)
   grad = jax.jit(jax.grad(lambda x: d_fn(x).sum()))(jnp.asarray(x_obs))
-  dropped = (x_obs <= projection.ALPHA) & (comp > 0)
+  dropped = (x_obs <= codec.ALPHA) & (comp > 0)
   rows = {
       'step': int(step),
       'd_observed': float(d_fn(x_obs).mean()),
@@ -216,9 +216,9 @@ def main(argv=None):
       'd_fake': float(d_fn(fake['scan']).mean()),
       'd_fake_filled': float(d_fn(fake['inv_depth']).mean()),
       'grad_abs_at_drops': float(np.abs(grad)[dropped].mean()),
-      'grad_abs_at_returns': float(np.abs(grad)[x_obs > projection.ALPHA].mean()),
+      'grad_abs_at_returns': float(np.abs(grad)[x_obs > codec.ALPHA].mean()),
       'grad_sign_at_drops': float(np.mean(np.sign(grad)[dropped])),
-      'real_drop_rate': float((x_obs <= projection.ALPHA).mean()),
+      'real_drop_rate': float((x_obs <= codec.ALPHA).mean()),
       'fake_drop_rate': float((fake['mask'] < 0.5).mean()),
       'real_mean_x': float(x_obs.mean()),
       'fake_mean_x': float(np.asarray(fake['scan']).mean()),

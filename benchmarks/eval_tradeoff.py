@@ -19,7 +19,7 @@ import os
 import numpy as np
 
 import common
-from dusty_jax import projection, writers
+from dusty_jax import codec, writers
 from dusty_jax.data import synthetic
 from dusty_jax.metrics import protocol
 from dusty_jax.sensor import get_sensor
@@ -43,7 +43,7 @@ def main():
   pool_n = max(s for s in sizes if s <= 2000) * (a.seeds + 1)
   print(f'simulating {pool_n} scans ...', flush=True)
   pool, _, _ = synthetic.simulate(pool_n, sensor, seed=7, workers=os.cpu_count() or 1)
-  pool = np.asarray(projection.encode(pool, sensor))
+  pool = np.asarray(codec.encode(pool, sensor))
   angles = sensor.nominal_angles()
   rows, measured = [], {}
   for n in sizes:

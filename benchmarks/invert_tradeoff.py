@@ -23,7 +23,7 @@ import jax
 import numpy as np
 
 import common
-from dusty_jax import configs, inversion, projection, sampling, trainer, writers
+from dusty_jax import codec, configs, inversion, sampling, trainer, writers
 from dusty_jax.sensor import get_sensor
 
 ITERS = (50, 100, 200, 500, 1000)
@@ -34,15 +34,15 @@ def random_generator():
   sensor = get_sensor('kitti')
   setup = trainer.make_setup(c, sensor)
   state = trainer.init_state(setup, jax.random.key(0))
-  return trainer.generator_bundle(setup, state.g_params, sensor.nominal_angles())
+  return trainer.generator_params(setup, state.g_params, sensor.nominal_angles())
 
 
 def errors(params, target, result):
-  valid = np.asarray(target) > projection.ALPHA
+  valid = np.asarray(target) > codec.ALPHA
   diff = np.abs(np.asarray(result['inv_depth']) - np.asarray(target))
   l1 = float(np.mean([d[v].mean() for d, v in zip(diff, valid)]))
-  t, _ = projection.decode(target, params.sensor)
-  p, _ = projection.decode(result['inv_depth'], params.sensor)
+  t, _ = codec.decode(target, params.sensor)
+  p, _ = codec.decode(result['inv_depth'], params.sensor)
   t, p = np.asarray(t), np.asarray(p)
   absrel = float(np.mean([(np.abs(pp - tt)[v] / tt[v]).mean()
                           for pp, tt, v in zip(p, t, valid)]))
@@ -63,7 +63,7 @@ def main():
     params, config = dusty_jax.load_checkpoint(a.workdir)
     d = pipeline.dataset_dir(config, params.sensor, log=print)
     test = arrays.load_split(d, 'test', params.sensor)[:a.batch]
-    target = projection.encode(test, params.sensor)
+    target = codec.encode(test, params.sensor)
     source = f'test scans of {a.workdir}'
   else:
     params = random_generator()

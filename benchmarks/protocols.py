@@ -20,15 +20,13 @@ Prints the figures and writes benchmarks/results/protocols.json.
 """
 
 import argparse
-import importlib
 import os
-import types
 
 import jax
 import numpy as np
 
 import common
-from dusty_jax import configs, projection
+from dusty_jax import codec, configs
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import chamfer, clouds, point_sets, protocol, swd
 from dusty_jax.sensor import from_config
@@ -72,13 +70,13 @@ def main():
   n, p = a.num, a.points
   real_depth, fake_depth = np.asarray(test[:n]), np.asarray(arrays.load_split(
       d, 'train', sensor)[:n])
-  real = np.asarray(projection.encode(real_depth, sensor))
-  fake = np.asarray(projection.encode(fake_depth, sensor))
+  real = np.asarray(codec.encode(real_depth, sensor))
+  fake = np.asarray(codec.encode(fake_depth, sensor))
   print(f'{n} clouds a set, {p} points, data {d}')
   out = dict(num=n, points=p, data=d)
 
   # --- FPS -------------------------------------------------------------------
-  valid = np.asarray(projection.valid_depth(real_depth, sensor))
+  valid = np.asarray(codec.valid_depth(real_depth, sensor))
   near_m = np.sqrt(clouds.PAPER_MIN_SQUARED_NORM) * sensor.max_depth
   stats = dict(pixel0_dropped=float(np.mean(~valid[:, 0, 0])),
                valid_nearer_than_m=near_m,
@@ -154,10 +152,10 @@ def main():
   ev, pa = protocol.subset(len(test), n), protocol.subset(len(test), n, 'paper')
   sub = dict(split=len(test), linspace=ev.tolist(), paper=pa.tolist(),
              shared=len(set(ev.tolist()) & set(pa.tolist())))
-  sub_real = np.asarray(projection.encode(np.asarray(test[pa][:len(fake)]), sensor))
+  sub_real = np.asarray(codec.encode(np.asarray(test[pa][:len(fake)]), sensor))
   m_sub = protocol.compare(sub_real, fake[:len(sub_real)], angles, sensor=sensor,
                            num_points=p, seed=0)
-  m_lin = protocol.compare(np.asarray(projection.encode(np.asarray(test[ev]), sensor)),
+  m_lin = protocol.compare(np.asarray(codec.encode(np.asarray(test[ev]), sensor)),
                            fake[:len(ev)], angles, sensor=sensor, num_points=p, seed=0)
   sub.update(metrics_linspace=m_lin, metrics_paper_subset=m_sub)
   out['subset'] = sub
@@ -167,21 +165,20 @@ def main():
   show('paper subset (reference metrics)', m_sub)
 
   # --- Table III Chamfer -------------------------------------------------------
-  invert = importlib.import_module('dusty_jax.invert')
+  from dusty_jax.metrics import reconstruction
   r = a.recon
   target = real_depth[:r]
   complete = np.asarray(arrays.load_split(d, 'test', sensor, 'complete')[:r])
   drop = np.asarray(arrays.load_split(d, 'test', sensor, 'drop_prob')[:r])
   rng = np.random.default_rng(0)
   rec = np.where(rng.uniform(size=drop.shape) >= drop, complete, 0.0).astype(np.float32)
-  dep, val = projection.decode(projection.encode(rec, sensor), sensor)
-  result = {'inv_depth': np.asarray(projection.encode(complete, sensor)),
-            'valid': np.asarray(val), 'points': np.asarray(projection.to_points(dep, angles))}
-  params = types.SimpleNamespace(sensor=sensor)
+  dep, val = codec.decode(codec.encode(rec, sensor), sensor)
+  result = {'inv_depth': np.asarray(codec.encode(complete, sensor)),
+            'valid': np.asarray(val), 'points': np.asarray(codec.to_points(dep, angles))}
   cd = {}
   for proto in ('reference', 'paper'):
     dt, errs = common.seconds(
-        lambda: invert.evaluate_batch(params, target, result, angles, proto))
+        lambda: reconstruction.errors(target, result, angles, sensor, proto))
     cd[proto] = errs['cd'].tolist()
     cd[f'{proto}_seconds_per_scan'] = dt / r
   cd['ratio'] = [b / a_ for a_, b in zip(cd['reference'], cd['paper'])]

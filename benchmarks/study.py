@@ -138,34 +138,36 @@ def invert_batched(params, target, steps, key, batch=16, desc='inverting'):
 
 def renders_drop(params, inv_depth):
   """Pixels the baseline renders as dropped (x_tilde within beta of ALPHA)."""
-  from dusty_jax.projection import ALPHA
+  from dusty_jax.codec import ALPHA
   return None if params.model != 'baseline' else inv_depth <= ALPHA + params.tolerance
 
 
 def synthesis(params, config, split, a):
   import jax
-  from dusty_jax import evaluate, projection
+  from dusty_jax import codec, sampling
   from dusty_jax.metrics import protocol
   sensor = params.sensor
   test = split('test')
-  ref = np.asarray(projection.encode(test[protocol.evenly(len(test), a.num_synthesis)],
+  ref = np.asarray(codec.encode(test[protocol.evenly(len(test), a.num_synthesis)],
                                      sensor))
   n = len(ref)
   tol = 0.0
   if params.model == 'baseline':
     val = split('val')
-    val = np.asarray(projection.encode(val[protocol.evenly(len(val), n)], sensor))
-    tol = evaluate.tune_tolerance(params, val, a.tune_trials, points=a.points)
+    val = np.asarray(codec.encode(val[protocol.evenly(len(val), n)], sensor))
+    gen = sampling.sample_scans(params, jax.random.key(0), len(val))
+    tol = protocol.tune_tolerance(val, gen, params.angles, sensor, a.tune_trials,
+                                  points=a.points)
   rows = {k: [] for k, _, _ in protocol.ROW_SCALES}
   cache = {}
   for seed in range(a.seeds):
-    gen = evaluate._sample_scans(params, jax.random.key(1000 + seed), n)
+    gen = sampling.sample_scans(params, jax.random.key(1000 + seed), n)
     m = protocol.compare(ref, gen, params.angles, sensor=sensor, num_points=a.points,
                          seed=seed, tolerance=tol, cache=cache, progress=True)
     for k in rows:
       rows[k].append(float(m[k]))
   train = split('train')
-  tr = np.asarray(projection.encode(train[protocol.evenly(len(train), n)], sensor))
+  tr = np.asarray(codec.encode(train[protocol.evenly(len(train), n)], sensor))
   m = protocol.compare(ref, tr, params.angles, sensor=sensor, num_points=a.points,
                        seed=0, cache=cache)
   return {'rows': rows, 'train_row': {k: float(v) for k, v in m.items()},
@@ -174,12 +176,12 @@ def synthesis(params, config, split, a):
 
 def disentangle(params, split, a, name):
   import jax
-  from dusty_jax import projection
+  from dusty_jax import codec
   from dusty_jax.metrics import ground_truth
   sensor = params.sensor
   idx = np.arange(min(a.num_invert, len(split('test'))))
   obs, comp, prob = (split('test', k)[idx] for k in ('', 'complete', 'drop_prob'))
-  res = invert_batched(params, np.asarray(projection.encode(obs, sensor)),
+  res = invert_batched(params, np.asarray(codec.encode(obs, sensor)),
                        a.invert_steps, jax.random.key(0), desc=f'{name}: inverting')
   out = ground_truth.disentanglement(
       sensor, res['inv_depth'], res['measurability'], obs, comp, prob,
@@ -191,30 +193,26 @@ def disentangle(params, split, a, name):
 
 
 def restoration(params, split, a, name):
-  import importlib
   import jax
-  from dusty_jax import corrupt, projection
-  from dusty_jax.metrics import ground_truth
-  invert_cli = importlib.import_module('dusty_jax.invert')  # the module, not the function
+  from dusty_jax import codec, corrupt
+  from dusty_jax.metrics import ground_truth, reconstruction
   sensor = params.sensor
   n = min(a.num_restore, len(split('test')))
   obs, comp = split('test')[:n], split('test', 'complete')[:n]
-  clean = np.asarray(projection.encode(obs, sensor))
+  clean = np.asarray(codec.encode(obs, sensor))
   out = {}
   for spec in CORRUPTIONS:
     key = jax.random.key(7)
     target = np.asarray(corrupt.apply(spec, key, clean, sensor))
     res = invert_batched(params, target, a.invert_steps, key,
                          desc=f'{name}: {spec}')
-    errs = invert_cli.evaluate_batch(params, obs, res, np.asarray(params.angles))
+    errs = reconstruction.errors(obs, res, np.asarray(params.angles), sensor)
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
-    pred = np.asarray(projection.complete_depth(res['inv_depth'], sensor), np.float64)
-    surface = np.asarray(projection.valid_depth(comp, sensor))
-    rd = renders_drop(params, res['inv_depth'])
-    covered = surface if rd is None else surface & ~rd
-    out[spec] = {'vs_clean': vs_clean,
-                 'vs_complete': ground_truth.depth_errors(pred, comp, covered),
-                 'coverage_complete': float(covered.sum() / max(surface.sum(), 1))}
+    surface = np.asarray(codec.valid_depth(comp, sensor))
+    vs_complete, coverage = ground_truth.completion(
+        sensor, res['inv_depth'], comp, surface, renders_drop(params, res['inv_depth']))
+    out[spec] = {'vs_clean': vs_clean, 'vs_complete': vs_complete,
+                 'coverage_complete': coverage}
     if spec == CORRUPTIONS[0]:
       np.savez_compressed(os.path.join(a.workdir, name, 'study_restore.npz'),
                           clean=clean[:4], target=target[:4],
@@ -225,12 +223,12 @@ def restoration(params, split, a, name):
 
 def trade(params, split, a):
   import jax
-  from dusty_jax import inversion, projection
+  from dusty_jax import codec, inversion
   from dusty_jax.metrics import ground_truth
   sensor = params.sensor
   n = min(a.num_trade, len(split('test')))
   obs, comp, prob = (split('test', k)[:n] for k in ('', 'complete', 'drop_prob'))
-  target = np.asarray(projection.encode(obs, sensor))
+  target = np.asarray(codec.encode(obs, sensor))
   rows = []
   for it in TRADE_ITERS:
     # One timed run after one that compiles.
@@ -309,14 +307,14 @@ def picture_trade(trade_rows, path):
 
 
 def picture_restoration(workdir, models, path):
-  from dusty_jax import projection, writers
+  from dusty_jax import codec, writers
   rows = []
   for model, params in models.items():
     f = os.path.join(workdir, model, 'study_restore.npz')
     if not os.path.isfile(f):
       continue
     r = np.load(f)
-    comp = np.asarray(projection.encode(r['complete'], params.sensor))
+    comp = np.asarray(codec.encode(r['complete'], params.sensor))
     for i in range(2):
       rows.append([writers.inv_depth_tile(r['clean'][i]),
                    writers.inv_depth_tile(r['target'][i]),
@@ -329,13 +327,13 @@ def picture_restoration(workdir, models, path):
 def picture_kitti(params, path):
   """A real KITTI scan restored by the DUSty-I model; None without the data."""
   import jax
-  from dusty_jax import corrupt, inversion, projection, writers
+  from dusty_jax import codec, corrupt, inversion, writers
   from dusty_jax.data import kitti
   f = os.path.join(KITTI_SAMPLE, '000000.bin')
   if not os.path.isfile(f):
     return None
   depth, _ = kitti.load_scan(f, params.sensor)
-  clean = np.asarray(projection.encode(depth, params.sensor))
+  clean = np.asarray(codec.encode(depth, params.sensor))
   rows = []
   for spec in ('', 'drop:0.9', 'beams:4'):
     target = clean if not spec else np.asarray(
@@ -486,7 +484,6 @@ def main(argv=None):
   if a.train_only:
     return
   import dusty_jax
-  from dusty_jax import sensor as sensor_lib
   results, params_by_model = {}, {}
   for m in models:
     params, config = dusty_jax.load_checkpoint(os.path.join(a.workdir, m))

@@ -9,9 +9,8 @@ Public API:
   render_drops(params, scan) -> realistic point-drops for a clean scan
 """
 
-from dusty_jax.checkpoint import load_checkpoint
+from dusty_jax.generator import GeneratorParams, load as load_checkpoint
 from dusty_jax.inversion import invert, render_drops
-from dusty_jax.models import GeneratorParams
 from dusty_jax.pretrained import load_pretrained
 from dusty_jax.sampling import generate, sample
 from dusty_jax.sensor import SensorSpec, get_sensor

@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from dusty_jax.projection import ALPHA
+from dusty_jax.codec import ALPHA
 
 POLICY = ('brightness', 'contrast', 'translation', 'cutout')
 STYLES = ('authors', 'symmetric')

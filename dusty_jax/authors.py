@@ -209,7 +209,7 @@ def find_config(path: str) -> str:
 def config_from_yaml(path: str):
   """Our ConfigDict (eqlr='authors') from the authors' hydra config of a run."""
   import yaml
-  from dusty_jax import configs, projection
+  from dusty_jax import codec, configs
   with open(path) as f:
     y = yaml.safe_load(f)
   try:
@@ -224,9 +224,9 @@ def config_from_yaml(path: str):
                      f'{sorted(m + "/dcgan_eqlr" for m in _ARCH)}')
   if not y['model'].get('ring', True):
     raise ValueError(f'{path}: ring=false (reflect padding) is not supported')
-  drop = float(gen.get('drop_const', projection.ALPHA))
-  if drop != projection.ALPHA:
-    raise ValueError(f'{path}: drop_const={drop}; dusty_jax drops to {projection.ALPHA}')
+  drop = float(gen.get('drop_const', codec.ALPHA))
+  if drop != codec.ALPHA:
+    raise ValueError(f'{path}: drop_const={drop}; dusty_jax drops to {codec.ALPHA}')
   depths = (float(data.get('min_depth', _DEPTHS[0])), float(data.get('max_depth', _DEPTHS[1])))
   if depths != _DEPTHS:
     raise ValueError(f'{path}: depth range {depths}; dusty_jax sensors have {_DEPTHS}')
@@ -295,10 +295,10 @@ def _weights(sd, model: str, source: str) -> tuple[dict, dict]:
     used.add(pre + 'drop_const')
   if 'drop_const' in sd:
     used.add('drop_const')
-    from dusty_jax import projection
-    if float(np.asarray(sd['drop_const'])) != projection.ALPHA:
+    from dusty_jax import codec
+    if float(np.asarray(sd['drop_const'])) != codec.ALPHA:
       raise ValueError(f'{source}: drop_const {float(np.asarray(sd["drop_const"]))}; '
-                       f'dusty_jax drops to {projection.ALPHA}')
+                       f'dusty_jax drops to {codec.ALPHA}')
   extra = sorted(set(sd) - used)
   if extra:
     raise ValueError(f'{source}: unexpected keys in the generator state dict: {extra} '
@@ -356,7 +356,7 @@ def load(path: str, config: str | None = None, ema: bool = True,
   """
   import jax
   import jax.numpy as jnp
-  from dusty_jax import models, sensor as sensor_lib
+  from dusty_jax import generator, models, sensor as sensor_lib
   ckpt = read_torch_checkpoint(path)
   cfg = config_from_yaml(config or find_config(path))
   key = 'G_ema' if ema else 'G'
@@ -364,8 +364,10 @@ def load(path: str, config: str | None = None, ema: bool = True,
     raise KeyError(f'{path}: no {key!r} in the checkpoint (keys: '
                    f'{sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__})')
   sensor = sensor_lib.from_config(cfg.sensor)
-  module = models.build_generator(cfg.model, sensor, cfg.latent_dim, cfg.ch_base,
-                                  cfg.ch_max, eqlr='authors')
+  settings = models.ModelSettings(model=cfg.model, latent_dim=cfg.latent_dim,
+                                  ch_base=cfg.ch_base, ch_max=cfg.ch_max,
+                                  eqlr='authors', tau=float(cfg.tau))
+  module = settings.generator(sensor)
   want = jax.eval_shape(module.init, jax.random.key(0), jnp.zeros((1, cfg.latent_dim)))
   weights, origin = _weights(ckpt[key], cfg.model, f'{path} [{key!r}]')
   got = {'params': weights}
@@ -380,10 +382,9 @@ def load(path: str, config: str | None = None, ema: bool = True,
           f'{cfg.latent_dim}, channels {cfg.ch_base}..{cfg.ch_max}, sensor '
           f'{sensor.shape}) asks for {v.shape}')
   table = sensor.nominal_angles() if angles is None else read_angles(angles, sensor)
-  params = models.GeneratorParams(
+  params = generator.GeneratorParams(
       variables=jax.tree.map(jnp.asarray, got), angles=jnp.asarray(table, jnp.float32),
-      model=cfg.model, sensor=sensor, latent_dim=cfg.latent_dim, ch_base=cfg.ch_base,
-      ch_max=cfg.ch_max, tau=cfg.tau, eqlr='authors')
+      sensor=sensor, settings=settings)
   cfg.source_checkpoint = os.path.abspath(path)
   cfg.source_step = int(ckpt.get('step', -1))
   return params, cfg

@@ -1,21 +1,23 @@
-"""The one place that knows about orbax: save, restore, and load for users."""
+"""The one place that knows about orbax: save and restore train states, and
+read one item (e.g. the EMA generator's variables) without the rest.
+
+Imports nothing of dusty_jax: what a run directory means is generator.py's
+and trainer.py's business.
+"""
 
 from __future__ import annotations
 
-import json
 import os
 import time
 
 import jax
-import ml_collections
 import orbax.checkpoint as ocp
 
-CONFIG_FILE = 'config.json'
-ANGLES_FILE = 'angles.npy'  # the same name as in a prepared dataset
+DIRECTORY = 'checkpoints'  # inside a run directory
 
 
 def manager(workdir: str, keep: int = 3, interval: int = 1) -> ocp.CheckpointManager:
-  path = os.path.join(os.path.abspath(workdir), 'checkpoints')
+  path = os.path.join(os.path.abspath(workdir), DIRECTORY)
   opts = ocp.CheckpointManagerOptions(max_to_keep=keep,
                                       save_interval_steps=interval, create=True)
   return ocp.CheckpointManager(path, options=opts)
@@ -52,9 +54,8 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
       return state, step
     except Exception as e:  # orbax/TensorStore raise many types.
       reader.close()
-      reason = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
       log(f'warning: checkpoint step {step} in {mngr.directory} does not restore '
-          f'({type(e).__name__}: {reason}); trying the previous one')
+          f'({_reason(e)}); trying the previous one')
       if set_aside:
         src = os.path.join(str(mngr.directory), str(step))
         dst = os.path.join(os.path.dirname(str(mngr.directory).rstrip('/')),
@@ -70,72 +71,50 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
   return target, None
 
 
-def save_angles(workdir: str, angles):
-  import numpy as np
-  os.makedirs(workdir, exist_ok=True)
-  tmp = os.path.join(workdir, ANGLES_FILE + '.tmp.npy')
-  np.save(tmp, np.asarray(angles, np.float32))
-  os.replace(tmp, os.path.join(workdir, ANGLES_FILE))
+def _reason(e: Exception) -> str:
+  text = str(e).strip()
+  return f'{type(e).__name__}: {text.splitlines()[0][:200]}' if text else type(e).__name__
 
 
-def save_config(workdir: str, config):
-  os.makedirs(workdir, exist_ok=True)
-  with open(os.path.join(workdir, CONFIG_FILE), 'w') as f:
-    f.write(config.to_json(indent=2))
+def restore_item(directory: str, name: str, step: int | None = None, log=print):
+  """(item ``name`` of a saved state, step): reads only that item.
 
-
-def load_config(workdir: str) -> ml_collections.ConfigDict:
-  path = os.path.join(workdir, CONFIG_FILE)
-  if not os.path.isfile(path):
-    raise FileNotFoundError(f'{path}: not a training run directory (no '
-                            f'{CONFIG_FILE}); train one with '
-                            '`python -m dusty_jax.train --workdir DIR`')
-  with open(path) as f:
-    return ml_collections.ConfigDict(json.load(f))
-
-
-def load_checkpoint(workdir: str, step: int | None = None, ema: bool = True,
-                    config: str | None = None, angles: str | None = None):
-  """(GeneratorParams, config) of a training run: the EMA generator by default.
-
-  Everything ``sample`` and ``invert`` need: the generator's variables, the
-  run's sensor and model, and the dataset's angle table. ``workdir`` may
-  also be one of the authors' ``.pth`` checkpoints (see authors.py), with
-  ``config`` their yaml (default: found beside it) and optional ``angles``.
+  ``directory``: a run's checkpoints/. Without ``step``, the newest step that
+  restores (damaged ones are skipped with a message). Shapes come from the
+  checkpoint's own metadata, so no model needs to be built; nothing is
+  written.
   """
-  if os.path.isfile(workdir):
-    if step is not None:
-      raise ValueError(f'{workdir}: step= is for a run directory, not a single file')
-    from dusty_jax import authors
-    return authors.load(workdir, config=config, ema=ema, angles=angles)
-  if config is not None or angles is not None:
-    raise ValueError(f'{workdir}: config= and angles= are for an authors\' .pth; '
-                     'a run directory holds its own')
-  from dusty_jax import sensor as sensor_lib, trainer
-  from dusty_jax.data import arrays, pipeline
-  config = load_config(workdir)
-  sensor = sensor_lib.from_config(config.sensor)
-  setup = trainer.make_setup(config, sensor)
-  target = trainer.init_state(setup, jax.random.key(0))
-  mngr = manager(workdir, keep=config.keep_checkpoints)
-  if step is None:
-    state, step = restore_latest(mngr, target)
-    if step is None:
-      raise FileNotFoundError(f'{workdir}: no checkpoint saved yet')
-  elif step not in mngr.all_steps():
-    raise FileNotFoundError(f'{workdir}: no checkpoint of step {step}; saved '
-                            f'steps: {sorted(mngr.all_steps())}')
-  else:
-    state = restore(mngr, step, target)
-  if os.path.isfile(os.path.join(workdir, ANGLES_FILE)):
-    # Written by training at its start: a copied run needs no dataset.
-    angles = arrays.load_angles(workdir, sensor)
-  else:  # runs written before the run kept its own angle table
+  if not os.path.isdir(directory):
+    raise FileNotFoundError(f'{directory}: no checkpoints here')
+  steps = sorted(ocp.utils.checkpoint_steps(directory))
+  if not steps:
+    raise FileNotFoundError(f'{directory}: no checkpoint saved yet')
+  if step is not None and step not in steps:
+    raise FileNotFoundError(f'{directory}: no checkpoint of step {step}; saved '
+                            f'steps: {steps}')
+  for s in ([step] if step is not None else steps[::-1]):
+    reader = ocp.CheckpointManager(
+        directory, options=ocp.CheckpointManagerOptions(read_only=True),
+        item_handlers=ocp.PyTreeCheckpointHandler())
     try:
-      angles = arrays.load_angles(pipeline.dataset_dir(config, sensor, log=lambda m: None),
-                                  sensor)
-    except FileNotFoundError:
-      angles = sensor.nominal_angles()
-  tolerance = config.get('tolerance', 0.0)
-  variables = state.ema_params if ema else state.g_params
-  return trainer.generator_bundle(setup, variables, angles, tolerance), config
+      meta = reader.item_metadata(s)
+      tree = getattr(meta, 'tree', meta)
+      if not isinstance(tree, dict) or name not in tree:
+        raise KeyError(f'no item {name!r} in the saved state')
+      device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+      target = {name: jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype),
+                                   tree[name])}
+      args = jax.tree.map(lambda m: ocp.ArrayRestoreArgs(dtype=m.dtype, sharding=device),
+                          target)
+      out = reader.restore(s, args=ocp.args.PyTreeRestore(
+          item=target, restore_args=args, partial_restore=True))
+      return out[name], s
+    except Exception as e:  # orbax/TensorStore raise many types.
+      if step is not None:
+        raise ValueError(f'{directory}: checkpoint step {s} does not restore '
+                         f'({_reason(e)})') from None
+      log(f'warning: checkpoint step {s} in {directory} does not restore '
+          f'({_reason(e)}); trying the previous one')
+    finally:
+      reader.close()
+  raise FileNotFoundError(f'{directory}: no saved checkpoint restores (steps {steps})')

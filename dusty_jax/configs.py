@@ -5,7 +5,12 @@ deviation we prefer is an option here (README: "Differences from the
 authors' code").
 """
 
+import json
+import os
+
 import ml_collections
+
+FILE = 'config.json'  # a run's config, in its directory
 
 
 def default() -> ml_collections.ConfigDict:
@@ -146,3 +151,25 @@ def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
     c.image_every = 500
     c.checkpoint_every = 250
   return c
+
+
+def save(workdir: str, config):
+  """Writes a run's config (atomically)."""
+  os.makedirs(workdir, exist_ok=True)
+  path = os.path.join(workdir, FILE)
+  with open(path + '.tmp', 'w') as f:
+    f.write(config.to_json(indent=2))
+  os.replace(path + '.tmp', path)
+
+
+def load(workdir: str) -> ml_collections.ConfigDict:
+  """A run's config, as saved by :func:`save`."""
+  path = os.path.join(workdir, FILE)
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f'{path}: not a training run directory (no {FILE}); '
+                            'train one with `python -m dusty_jax.train --workdir DIR`')
+  with open(path) as f:
+    try:
+      return ml_collections.ConfigDict(json.load(f))
+    except json.JSONDecodeError as e:
+      raise ValueError(f'{path}: not valid JSON ({e})') from None

@@ -15,8 +15,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from dusty_jax import projection
-from dusty_jax.projection import ALPHA
+from dusty_jax import codec
+from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import SensorSpec
 
 
@@ -31,10 +31,10 @@ def beams(scan, k: int, offset: int = 0):
 
 
 def noise(key, scan, sigma: float, sensor: SensorSpec):
-  depth, valid = projection.decode(scan, sensor)
+  depth, valid = codec.decode(scan, sensor)
   span = sensor.max_depth - sensor.min_depth
   noisy = depth + sigma * span * jax.random.normal(key, scan.shape)
-  return jnp.where(valid, projection.encode(noisy, sensor), ALPHA)
+  return jnp.where(valid, codec.encode(noisy, sensor), ALPHA)
 
 
 def parse(spec: str):

@@ -24,8 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import models, projection, sampling
-from dusty_jax.projection import ALPHA
+from dusty_jax import sampling
+from dusty_jax.codec import ALPHA
+from dusty_jax.generator import GeneratorParams
 
 LR = 0.1
 RAMP_UP = 0.05
@@ -97,7 +98,7 @@ def _invert(params, scans, masks, keys, num_steps, lr, impl):
   return out
 
 
-def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
+def invert(params: GeneratorParams, scan, mask=None, *, key=None,
            num_steps: int = 1000, lr: float = LR, impl: str | None = None):
   """Reconstructs scans by latent search.
 
@@ -130,7 +131,7 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
       raise ValueError(
           f'scan values lie in [{finite.min():.4g}, {finite.max():.4g}], outside the '
           'normalised inverse depth [-1, 1] that invert() takes (metres given by '
-          'mistake?); encode metric depth with dusty_jax.projection.encode(depth, '
+          'mistake?); encode metric depth with dusty_jax.codec.encode(depth, '
           'params.sensor), which also marks 0 / out-of-range depths as drops')
   single = scan.ndim == 2
   if mask is not None and np.shape(mask) != scan.shape:
@@ -163,7 +164,7 @@ def invert(params: models.GeneratorParams, scan, mask=None, *, key=None,
   return out
 
 
-def render_drops(params: models.GeneratorParams, scan, *, key=None,
+def render_drops(params: GeneratorParams, scan, *, key=None,
                  num_samples: int = 1, num_steps: int = 1000,
                  impl: str | None = None):
   """Gives a clean scan (e.g. a simulated one) realistic point-drops.

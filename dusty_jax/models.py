@@ -29,16 +29,16 @@ Models:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
 import flax.linen as nn
-from flax import struct
 import jax
 import jax.numpy as jnp
 
-from dusty_jax import gumbel, layers
-from dusty_jax.projection import ALPHA
+from dusty_jax import configs, gumbel, layers
+from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import SensorSpec
 
 MODELS = {'baseline': 1, 'dusty1': 2, 'dusty2': 3}  # output channels.
@@ -157,8 +157,8 @@ class Discriminator(nn.Module):
     return ((x @ w) * (1.0 / math.sqrt(x.shape[-1])) + b)[:, 0]
 
 
-def render(model: str, raw, key, tau: float = 1.0, train: bool = True,
-           drop_const: float = ALPHA):
+def compose(model: str, raw, key, tau: float = 1.0, train: bool = True,
+            drop_const: float = ALPHA):
   """Generator output (B, H, W, C) -> dict of what the scan is made of.
 
   Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability logits,
@@ -183,11 +183,11 @@ def render(model: str, raw, key, tau: float = 1.0, train: bool = True,
   return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
 
 
-def render_per_example(model: str, raw, keys, tau: float = 1.0,
-                       train: bool = True, drop_const: float = ALPHA):
-  """:func:`render` with one key per example, so results do not depend on
+def compose_per_example(model: str, raw, keys, tau: float = 1.0,
+                        train: bool = True, drop_const: float = ALPHA):
+  """:func:`compose` with one key per example, so results do not depend on
   how a batch is split across devices."""
-  out = jax.vmap(lambda r, k: render(model, r[None], k, tau, train, drop_const))(
+  out = jax.vmap(lambda r, k: compose(model, r[None], k, tau, train, drop_const))(
       raw, keys)
   return jax.tree.map(lambda v: v[:, 0], out)
 
@@ -201,43 +201,40 @@ def measurability(model: str, logit) -> Any:
   raise ValueError(f'model {model!r} has no measurability map')
 
 
-def build_generator(model: str, sensor: SensorSpec, latent_dim: int = 512,
-                    ch_base: int = 64, ch_max: int = 512,
-                    impl: str | None = None, eqlr: str = 'authors') -> Generator:
-  if model not in MODELS:
-    raise ValueError(f'unknown model {model!r}; known: {sorted(MODELS)}')
-  check_shape(sensor)
-  return Generator(sensor, MODELS[model], latent_dim, ch_base, ch_max,
-                   impl or layers.default_impl(), check_eqlr(eqlr))
+@dataclasses.dataclass(frozen=True)
+class ModelSettings:
+  """Everything that decides the networks and the generator's function, as
+  one frozen value: the trainer, a trained generator and its files share it."""
+  model: str = 'dusty1'
+  latent_dim: int = 512
+  ch_base: int = 64
+  ch_max: int = 512
+  eqlr: str = 'authors'
+  tau: float = 1.0
 
+  def __post_init__(self):
+    if self.model not in MODELS:
+      raise ValueError(f'unknown model {self.model!r}; known: {sorted(MODELS)}')
+    check_eqlr(self.eqlr)
+    for f in ('latent_dim', 'ch_base', 'ch_max'):
+      v = getattr(self, f)
+      if not isinstance(v, int) or v < 1:
+        raise ValueError(f'{f}={v!r}: must be a whole number >= 1')
+    if not self.tau > 0:
+      raise ValueError(f'tau={self.tau!r}: the Gumbel temperature must be > 0')
 
-def build(model: str, sensor: SensorSpec, latent_dim: int = 512,
-          ch_base: int = 64, ch_max: int = 512, impl: str | None = None,
-          eqlr: str = 'authors'):
-  """(generator, discriminator) modules for a model name and sensor."""
-  g = build_generator(model, sensor, latent_dim, ch_base, ch_max, impl, eqlr)
-  d = Discriminator(sensor, ch_base, ch_max, g.impl)
-  return g, d
+  @classmethod
+  def from_config(cls, config) -> 'ModelSettings':
+    """From a training config (fields a config predates take legacy values)."""
+    return cls(model=config.model, latent_dim=int(config.latent_dim),
+               ch_base=int(config.ch_base), ch_max=int(config.ch_max),
+               eqlr=configs.legacy_get(config, 'eqlr'), tau=float(config.tau))
 
+  def generator(self, sensor: SensorSpec, impl: str | None = None) -> Generator:
+    check_shape(sensor)
+    return Generator(sensor, MODELS[self.model], self.latent_dim, self.ch_base,
+                     self.ch_max, impl or layers.default_impl(), self.eqlr)
 
-class GeneratorParams(struct.PyTreeNode):
-  """A trained generator as one pytree: what sample() and invert() take.
-
-  The Flax variables and the angle table are leaves; the model name, sensor
-  and network sizes ride along as static metadata, so the bundle can pass
-  through jit, vmap and grad like any parameter pytree.
-  """
-  variables: Any
-  angles: Any  # (2, H, W) per-pixel elevation, azimuth for back-projection.
-  model: str = struct.field(pytree_node=False, default='dusty1')
-  sensor: SensorSpec = struct.field(pytree_node=False, default=None)
-  latent_dim: int = struct.field(pytree_node=False, default=512)
-  ch_base: int = struct.field(pytree_node=False, default=64)
-  ch_max: int = struct.field(pytree_node=False, default=512)
-  tau: float = struct.field(pytree_node=False, default=1.0)
-  tolerance: float = struct.field(pytree_node=False, default=0.0)
-  eqlr: str = struct.field(pytree_node=False, default='authors')
-
-  def module(self, impl: str | None = None) -> Generator:
-    return build_generator(self.model, self.sensor, self.latent_dim,
-                           self.ch_base, self.ch_max, impl, self.eqlr)
+  def discriminator(self, sensor: SensorSpec, impl: str | None = None) -> 'Discriminator':
+    check_shape(sensor)
+    return Discriminator(sensor, self.ch_base, self.ch_max, impl or layers.default_impl())

@@ -8,17 +8,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import models, projection
+from dusty_jax import codec, models
+from dusty_jax.generator import GeneratorParams
 
 
-def decode_scan(params: models.GeneratorParams, scan):
+def decode_scan(params: GeneratorParams, scan):
   """Measured depth, validity and points (in metres) of generated scans."""
-  depth, valid = projection.decode(scan, params.sensor, params.tolerance)
-  points = projection.to_points(depth, params.angles)
+  depth, valid = codec.decode(scan, params.sensor, params.tolerance)
+  points = codec.to_points(depth, params.angles)
   return depth, valid, points
 
 
-def generate(params: models.GeneratorParams, z, key, train: bool = False,
+def generate(params: GeneratorParams, z, key, train: bool = False,
              impl: str | None = None):
   """What the generator makes of latents ``z`` (B, latent_dim), as a dict.
 
@@ -31,7 +32,7 @@ def generate(params: models.GeneratorParams, z, key, train: bool = False,
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   """
   raw = params.module(impl).apply(params.variables, z)
-  out = models.render(params.model, raw, key, params.tau, train)
+  out = models.compose(params.model, raw, key, params.tau, train)
   if params.model == 'baseline':
     out['measurability'] = jnp.ones_like(out['inv_depth'])
   else:
@@ -57,14 +58,14 @@ def as_key(key, what: str = 'key'):
                   f'array of dtype {key.dtype} and shape {key.shape}')
 
 
-def check_params(params: models.GeneratorParams):
+def check_params(params: GeneratorParams):
   want = (2,) + tuple(params.sensor.shape)
   if tuple(np.shape(params.angles)) != want:
     raise ValueError(f'angles of shape {tuple(np.shape(params.angles))} do not match '
                      f'the generator\'s sensor {params.sensor.name!r}: expected {want}')
 
 
-def sample(params: models.GeneratorParams, key, num: int, impl: str | None = None):
+def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   """Draws ``num`` scans: z ~ N(0, I), test-time Gumbel sampling.
 
   ``key``: from ``jax.random.key`` (a legacy ``PRNGKey`` is accepted).
@@ -84,3 +85,14 @@ def _sample(params, key, num, impl):
   kz, kmask = jax.random.split(key)
   z = jax.random.normal(kz, (num, params.latent_dim))
   return generate(params, z, kmask, impl=impl)
+
+
+def sample_scans(params: GeneratorParams, key, num: int, batch: int = 64) -> np.ndarray:
+  """(num, H, W) sampled scans x as numpy, drawn ``batch`` at a time (the
+  batch starting at i with ``fold_in(key, i)``)."""
+  key = as_key(key)
+  out = []
+  for i in range(0, num, batch):
+    n = min(batch, num - i)
+    out.append(np.asarray(sample(params, jax.random.fold_in(key, i), n)['scan']))
+  return np.concatenate(out)

@@ -4,7 +4,8 @@ One step is ``train_step(state, batch, key) -> (state, metrics)``, written
 once per device with the named axis ``'data'`` (gradients and metrics are
 ``pmean``-ed over it) and wrapped for the devices at hand in parallel.py.
 
-A step updates D, then G, then the EMA of G:
+A step composes three pure functions, each tested alone: ``d_step``, then
+``g_step``, then ``ema_update``:
   * D: non-saturating loss on DiffAugmented real and generated scans, plus
     the R1 penalty (gamma / 2) * E||grad D(aug(x_real))||^2. By default on
     every step, as the authors' trainer does. With ``r1_every = k > 1`` it is
@@ -31,7 +32,7 @@ import numpy as np
 import optax
 from jax import lax
 
-from dusty_jax import augment, configs, losses, models, projection
+from dusty_jax import augment, codec, configs, losses, models
 from dusty_jax.sensor import SensorSpec
 
 AXIS = 'data'
@@ -46,35 +47,35 @@ class TrainState(flax.struct.PyTreeNode):
   ema_params: Any
 
 
+static = lambda: flax.struct.field(pytree_node=False)
+
+
 @flax.struct.dataclass
 class Setup:
-  """Static pieces of training derived from the config (not a pytree leaf)."""
-  generator: Any = flax.struct.field(pytree_node=False)
-  discriminator: Any = flax.struct.field(pytree_node=False)
-  g_tx: Any = flax.struct.field(pytree_node=False)
-  d_tx: Any = flax.struct.field(pytree_node=False)
-  model: str = flax.struct.field(pytree_node=False)
-  sensor: SensorSpec = flax.struct.field(pytree_node=False)
-  latent_dim: int = flax.struct.field(pytree_node=False)
-  tau: float = flax.struct.field(pytree_node=False)
-  r1_gamma: float = flax.struct.field(pytree_node=False)
-  r1_every: int = flax.struct.field(pytree_node=False)
-  ema_decay: float = flax.struct.field(pytree_node=False)
-  ema_halflife_img: float = flax.struct.field(pytree_node=False)
-  ema_rampup: float = flax.struct.field(pytree_node=False)
-  batch_size: int = flax.struct.field(pytree_node=False)
-  policy: tuple = flax.struct.field(pytree_node=False)
-  augment_style: str = flax.struct.field(pytree_node=False, default='authors')
-  drop_const: float = flax.struct.field(pytree_node=False, default=projection.ALPHA)
+  """Static pieces of training derived from the config (no pytree leaves)."""
+  settings: models.ModelSettings = static()
+  sensor: SensorSpec = static()
+  generator: Any = static()
+  discriminator: Any = static()
+  g_tx: Any = static()
+  d_tx: Any = static()
+  r1_gamma: float = static()
+  r1_every: int = static()
+  ema_decay: float = static()
+  ema_halflife_img: float = static()
+  ema_rampup: float = static()
+  batch_size: int = static()
+  policy: tuple = static()
+  augment_style: str = static()
+  drop_const: float = static()
 
 
 legacy_get = configs.legacy_get
 
 
 def make_setup(config, sensor: SensorSpec) -> Setup:
-  g, d = models.build(config.model, sensor, config.latent_dim, config.ch_base,
-                      config.ch_max, config.impl or None,
-                      eqlr=legacy_get(config, 'eqlr'))
+  settings = models.ModelSettings.from_config(config)
+  impl = config.impl or None
   r1_every = max(int(config.r1_every), 1)
   def tx(lazy_every=1):
     # StyleGAN2's lazy regularisation: D's Adam sees k / (k + 1) of the
@@ -82,26 +83,31 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
     c = lazy_every / (lazy_every + 1) if lazy_every > 1 else 1.0
     return optax.adam(config.lr * c, b1=config.beta1 ** c, b2=config.beta2 ** c,
                       eps=config.adam_eps)
-  # EMA half-life in images, as the authors' smoothing_kimg.
-  ema_decay = 0.5 ** (config.batch_size / max(config.ema_halflife_kimg * 1000, 1e-8))
   policy = tuple(p for p in config.augment.split(',') if p)
   style = legacy_get(config, 'augment_style')
   augment.check(policy, style)
   drop_const = float(legacy_get(config, 'drop_const'))
-  if drop_const > projection.ALPHA:
-    raise ValueError(f'drop_const={drop_const}: must be <= {projection.ALPHA} '
+  if drop_const > codec.ALPHA:
+    raise ValueError(f'drop_const={drop_const}: must be <= {codec.ALPHA} '
                      '(inside the depth range a drop would read as a surface)')
-  return Setup(g, d, tx(), tx(r1_every if config.r1_gamma > 0 else 1),
-               config.model, sensor, config.latent_dim,
-               config.tau, config.r1_gamma, r1_every,
-               float(ema_decay), config.ema_halflife_kimg * 1000.0,
-               float(config.get('ema_rampup', 0.0) or 0.0), config.batch_size,
-               policy, style, drop_const)
+  return Setup(
+      settings=settings, sensor=sensor,
+      generator=settings.generator(sensor, impl),
+      discriminator=settings.discriminator(sensor, impl),
+      g_tx=tx(), d_tx=tx(r1_every if config.r1_gamma > 0 else 1),
+      r1_gamma=float(config.r1_gamma), r1_every=r1_every,
+      # EMA half-life in images, as the authors' smoothing_kimg.
+      ema_decay=float(0.5 ** (config.batch_size /
+                              max(config.ema_halflife_kimg * 1000, 1e-8))),
+      ema_halflife_img=config.ema_halflife_kimg * 1000.0,
+      ema_rampup=float(config.get('ema_rampup', 0.0) or 0.0),
+      batch_size=config.batch_size, policy=policy, augment_style=style,
+      drop_const=drop_const)
 
 
 def init_state(setup: Setup, key) -> TrainState:
   kg, kd = jax.random.split(key)
-  z = jnp.zeros((1, setup.latent_dim))
+  z = jnp.zeros((1, setup.settings.latent_dim))
   g_params = jax.jit(setup.generator.init)(kg, z)
   d_params = jax.jit(setup.discriminator.init)(
       kd, jnp.zeros((1,) + setup.sensor.shape))
@@ -111,11 +117,106 @@ def init_state(setup: Setup, key) -> TrainState:
                     ema_params=jax.tree.map(jnp.copy, g_params))
 
 
-def render_fakes(setup: Setup, params, z, keys, train=True):
+def fake_scans(setup: Setup, params, z, keys, train=True):
   """Generator forward and rendering; ``keys``: one per example."""
   raw = setup.generator.apply(params, z)
-  return models.render_per_example(setup.model, raw, keys, setup.tau, train,
-                                   setup.drop_const)
+  return models.compose_per_example(setup.settings.model, raw, keys,
+                                   setup.settings.tau, train, setup.drop_const)
+
+
+# ----------------------------------------------------------------------------
+# The pure pieces of a step. With ``axis_name`` (inside parallel.py's
+# wrapper) gradients and metrics are averaged over devices; with None they
+# are this call's own, which is how the tests run them alone.
+# ----------------------------------------------------------------------------
+
+
+def _pmean(tree, axis_name):
+  return tree if axis_name is None else lax.pmean(tree, axis_name)
+
+
+def _local(tree, axis_name):
+  # Differentiate with respect to per-device copies of replicated parameters:
+  # the gradients are then this device's own, and pmean averages them.
+  # (Differentiating the replicated values directly would make shard_map
+  # psum the cotangents itself.)
+  return tree if axis_name is None else lax.pcast(tree, (axis_name,), to='varying')
+
+
+def _augment(setup: Setup, keys, x):
+  return augment.per_example(keys, x, setup.policy, setup.augment_style)
+
+
+def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
+           axis_name=None):
+  """One discriminator update: (d_params, d_opt, metrics).
+
+  Non-saturating loss on DiffAugmented ``real`` and ``fake`` (B, H, W) scans
+  (``keys``: (real, fake) augmentation keys, one per example each), plus
+  (gamma / 2) * k * R1 on the augmented reals when ``r1_now`` (k =
+  r1_every; R1 is 0 on steps that skip it).
+  """
+  k_real, k_fake = keys
+  d_apply = setup.discriminator.apply
+
+  def objective(dp):
+    real_aug = _augment(setup, k_real, real)
+    real_logits = d_apply(dp, real_aug)
+    fake_logits = d_apply(dp, _augment(setup, k_fake, lax.stop_gradient(fake)))
+    adv = losses.d_loss(real_logits, fake_logits)
+    r1 = jnp.zeros(())
+    if setup.r1_gamma > 0:
+      penalty = lambda: losses.r1_penalty(lambda x: d_apply(dp, x), real_aug)
+      skip = lambda: _local(jnp.zeros(()), axis_name)
+      r1 = penalty() if setup.r1_every == 1 else lax.cond(r1_now, penalty, skip)
+    total = adv + 0.5 * setup.r1_gamma * setup.r1_every * r1
+    return total, {'loss_d': adv, 'r1': r1,
+                   'd_real': real_logits.mean(), 'd_fake': fake_logits.mean()}
+
+  grads, metrics = jax.grad(objective, has_aux=True)(_local(d_params, axis_name))
+  grads = _pmean(grads, axis_name)
+  updates, d_opt = setup.d_tx.update(grads, d_opt, d_params)
+  return optax.apply_updates(d_params, updates), d_opt, metrics
+
+
+def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
+           axis_name=None):
+  """One generator update through ``d_params``: (g_params, g_opt, loss_g).
+
+  ``fake`` are the generated scans and ``fake_vjp`` the VJP of the
+  generator's forward pass that made them (``jax.vjp``), so the forward pass
+  of the D step serves here too (the authors reuse it the same way).
+  ``key``: the augmentation keys, one per example.
+  """
+  d_local = _local(d_params, axis_name)
+
+  def objective(scan):
+    return losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, scan)))
+
+  loss_g, dscan = jax.value_and_grad(objective)(fake)
+  (grads,) = fake_vjp(dscan)
+  grads = _pmean(grads, axis_name)
+  updates, g_opt = setup.g_tx.update(grads, g_opt, g_params)
+  return optax.apply_updates(g_params, updates), g_opt, loss_g
+
+
+def ema_decay(setup: Setup, step):
+  """The EMA decay at ``step`` (0-based): 0.5 ** (batch / half-life images).
+
+  With ``ema_rampup`` the half-life grows with the images seen, up to
+  ema_halflife_kimg (StyleGAN2), so early samples are not dominated by the
+  initialisation.
+  """
+  if not setup.ema_rampup:
+    return setup.ema_decay
+  seen = (step + 1).astype(jnp.float32) * setup.batch_size
+  halflife = jnp.minimum(setup.ema_halflife_img, seen * setup.ema_rampup)
+  return 0.5 ** (setup.batch_size / jnp.maximum(halflife, 1e-8))
+
+
+def ema_update(ema_params, params, decay):
+  """decay * ema + (1 - decay) * params, leaf by leaf."""
+  return jax.tree.map(lambda e, p: decay * e + (1 - decay) * p, ema_params, params)
 
 
 def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
@@ -128,76 +229,30 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   # whatever the number of devices, so 1- and N-device runs agree.
   b = batch.shape[0]
   # Drops in the discriminator's input take the drop constant (ALPHA: as is).
-  batch = jnp.where(batch <= projection.ALPHA, setup.drop_const, batch)
+  batch = jnp.where(batch <= codec.ALPHA, setup.drop_const, batch)
   key = jax.random.fold_in(key, state.step)
   ids = lax.axis_index(axis_name) * b + jnp.arange(b)
   keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 5))(ids)
   kz, kmask, kar, kaf, kag = (keys[:, j] for j in range(5))
-  z = jax.vmap(lambda k: jax.random.normal(k, (setup.latent_dim,)))(kz)
-  d_apply = lambda p, x: setup.discriminator.apply(p, x)
-  aug = lambda k, x: augment.per_example(k, x, setup.policy, setup.augment_style)
+  z = jax.vmap(lambda k: jax.random.normal(k, (setup.settings.latent_dim,)))(kz)
 
-  # Differentiate with respect to per-device copies of the replicated
-  # parameters: the gradients are then this device's own, and pmean averages
-  # them. (Differentiating the replicated values directly would make
-  # shard_map psum the cotangents itself.)
-  local = lambda tree: lax.pcast(tree, (axis_name,), to='varying')
-
-  # Generator forward once; its VJP serves the G update below.
+  # Generator forward once; its VJP serves the G update.
   def fakes(p):
-    out = render_fakes(setup, p, z, kmask)
+    out = fake_scans(setup, p, z, kmask)
     return out['scan'], out['mask']
-  fake, g_vjp, mask = jax.vjp(fakes, local(state.g_params), has_aux=True)
+  fake, fake_vjp, mask = jax.vjp(fakes, _local(state.g_params, axis_name),
+                                 has_aux=True)
 
-  # --- Discriminator ---------------------------------------------------
-  do_r1 = setup.r1_gamma > 0
-  r1_now = (state.step % setup.r1_every) == 0
-
-  def d_objective(dp):
-    real_aug = aug(kar, batch)
-    real_logits = d_apply(dp, real_aug)
-    fake_logits = d_apply(dp, aug(kaf, lax.stop_gradient(fake)))
-    adv = losses.d_loss(real_logits, fake_logits)
-    r1 = jnp.zeros(())
-    if do_r1:
-      penalty = lambda: losses.r1_penalty(lambda x: d_apply(dp, x), real_aug)
-      skip = lambda: lax.pcast(jnp.zeros(()), (axis_name,), to='varying')
-      r1 = penalty() if setup.r1_every == 1 else lax.cond(r1_now, penalty, skip)
-    total = adv + 0.5 * setup.r1_gamma * setup.r1_every * r1
-    return total, {'loss_d': adv, 'r1': r1,
-                   'd_real': real_logits.mean(), 'd_fake': fake_logits.mean()}
-
-  d_grads, d_metrics = jax.grad(d_objective, has_aux=True)(local(state.d_params))
-  d_grads = lax.pmean(d_grads, axis_name)
-  d_updates, d_opt = setup.d_tx.update(d_grads, state.d_opt, state.d_params)
-  d_params = optax.apply_updates(state.d_params, d_updates)
-
-  # --- Generator, through the updated D --------------------------------
-  d_local = local(d_params)
-
-  def g_objective(scan):
-    return losses.g_loss(d_apply(d_local, aug(kag, scan)))
-
-  loss_g, dscan = jax.value_and_grad(g_objective)(fake)
-  (g_grads,) = g_vjp(dscan)
-  g_grads = lax.pmean(g_grads, axis_name)
-  g_updates, g_opt = setup.g_tx.update(g_grads, state.g_opt, state.g_params)
-  g_params = optax.apply_updates(state.g_params, g_updates)
-
-  decay = setup.ema_decay
-  if setup.ema_rampup:
-    # StyleGAN2's ramp-up: the half-life grows with the images seen, up to
-    # ema_halflife_kimg, so early samples are not dominated by the init.
-    seen = (state.step + 1).astype(jnp.float32) * setup.batch_size
-    halflife = jnp.minimum(setup.ema_halflife_img, seen * setup.ema_rampup)
-    decay = 0.5 ** (setup.batch_size / jnp.maximum(halflife, 1e-8))
-  ema = jax.tree.map(lambda e, p: decay * e + (1 - decay) * p,
-                     state.ema_params, g_params)
-  # 'r1' is 0 on steps that skip the penalty.
+  d_params, d_opt, d_metrics = d_step(
+      setup, state.d_params, state.d_opt, batch, fake, (kar, kaf),
+      (state.step % setup.r1_every) == 0, axis_name)
+  g_params, g_opt, loss_g = g_step(setup, state.g_params, state.g_opt, d_params,
+                                   fake, fake_vjp, kag, axis_name)
+  ema = ema_update(state.ema_params, g_params, ema_decay(setup, state.step))
   metrics = dict(d_metrics, loss_g=loss_g,
-                 drop_rate=jnp.mean(fake <= projection.ALPHA),
+                 drop_rate=jnp.mean(fake <= codec.ALPHA),
                  mask_drop_rate=jnp.mean(mask < 0.5),
-                 real_drop_rate=jnp.mean(batch <= projection.ALPHA))
+                 real_drop_rate=jnp.mean(batch <= codec.ALPHA))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,
@@ -218,12 +273,28 @@ class NonFiniteLossError(FloatingPointError):
   pass
 
 
-def generator_bundle(setup: Setup, variables, angles, tolerance=0.0):
-  return models.GeneratorParams(
-      variables=variables, angles=jnp.asarray(angles), model=setup.model,
-      sensor=setup.sensor, latent_dim=setup.latent_dim,
-      ch_base=setup.generator.ch_base, ch_max=setup.generator.ch_max,
-      tau=setup.tau, tolerance=tolerance, eqlr=setup.generator.eqlr)
+def generator_params(setup: Setup, variables, angles, tolerance=0.0):
+  """A GeneratorParams of these variables (e.g. the EMA) for sampling."""
+  from dusty_jax import generator
+  return generator.GeneratorParams(variables=variables, angles=jnp.asarray(angles),
+                                   sensor=setup.sensor, settings=setup.settings,
+                                   tolerance=tolerance)
+
+
+def init_run(workdir: str, config, params) -> None:
+  """Starts a run directory from given generator weights (e.g. the authors'):
+  config, generator description and a step-0 checkpoint whose G and EMA
+  hold ``params.variables`` and whose D and optimisers are fresh."""
+  from dusty_jax import checkpoint, generator
+  setup = make_setup(config, params.sensor)
+  state = init_state(setup, jax.random.key(config.seed))
+  state = state.replace(g_params=params.variables, ema_params=params.variables)
+  configs.save(workdir, config)
+  generator.save_spec(workdir, params.sensor, setup.settings, params.angles,
+                      params.tolerance)
+  mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
+  checkpoint.save(mngr, 0, state, force=True)
+  mngr.wait_until_finished()
 
 
 def _check_finite(step, records):
@@ -251,10 +322,9 @@ def _save_images(path, params_bundle, z, key):
 def _check_resumable(workdir: str, config):
   """Refuses, before anything is written, to resume a run whose checkpoints
   were made by another architecture."""
-  from dusty_jax import checkpoint
-  if not os.path.isfile(os.path.join(workdir, checkpoint.CONFIG_FILE)):
+  if not os.path.isfile(os.path.join(workdir, configs.FILE)):
     return
-  diff = configs.architecture_diff(checkpoint.load_config(workdir), config)
+  diff = configs.architecture_diff(configs.load(workdir), config)
   if diff:
     fields = '; '.join(f'{k}: run has {a!r}, config has {b!r}' for k, (a, b) in diff.items())
     raise configs.ConfigError(
@@ -266,7 +336,7 @@ def _check_resumable(workdir: str, config):
 def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   """Trains from scratch or resumes from the latest checkpoint in ``workdir``."""
   import tqdm
-  from dusty_jax import checkpoint, parallel, sensor as sensor_lib, writers
+  from dusty_jax import checkpoint, generator, parallel, sensor as sensor_lib, writers
   from dusty_jax.data import arrays, pipeline
 
   configs.validate(config)
@@ -284,8 +354,13 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
                              jax.process_index(), jax.process_count())
 
   if is_main:
-    checkpoint.save_config(workdir, config)
-    checkpoint.save_angles(workdir, angles)
+    configs.save(workdir, config)
+    # What a trained generator is, saved before any checkpoint: loading it
+    # later needs neither this trainer nor the dataset (generator.py).
+    tolerance = config.get('tolerance', 0.0)
+    if os.path.isfile(os.path.join(workdir, generator.SPEC_FILE)):
+      tolerance = generator.read_spec(workdir)[2]  # may have been tuned since.
+    generator.save_spec(workdir, sensor, setup.settings, angles, tolerance)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
@@ -297,7 +372,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   state = parallel.replicate(state, mesh)
   step = parallel.data_parallel(step_fn(setup), mesh)
   writer = writers.MetricWriter(workdir, enabled=is_main, resume_step=start)
-  z_img = jax.random.normal(k_img, (config.num_images, config.latent_dim))
+  z_img = jax.random.normal(k_img, (config.num_images, setup.settings.latent_dim))
 
   pending = []  # (step, device metrics) not yet fetched.
   last_log = (time.time(), start)
@@ -327,7 +402,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
       if ckpt_now:
         checkpoint.save(mngr, done, state)
       if is_main and (done % config.image_every == 0 or done == config.num_steps):
-        bundle = generator_bundle(setup, state.ema_params, angles)
+        bundle = generator_params(setup, state.ema_params, angles)
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
                      bundle, z_img, jax.random.key(0))
       bar.update()

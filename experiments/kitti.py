@@ -1,6 +1,6 @@
 """DUSty-I on KITTI odometry (HDL-64E, 64x256); prepare the data first:
 
-  python -m dusty_jax.prepare --dataset kitti --root /path/to/kitti --out data/kitti
+  python -m dusty_jax.tools.prepare --dataset kitti --root /path/to/kitti --out data/kitti
 """
 
 from dusty_jax import configs

@@ -1,6 +1,6 @@
 """DUSty-I on MPO sparse (HDL-32E, 32x256); prepare the data first:
 
-  python -m dusty_jax.prepare --dataset mpo --root /path/to/mpo --out data/mpo
+  python -m dusty_jax.tools.prepare --dataset mpo --root /path/to/mpo --out data/mpo
 """
 
 from dusty_jax import configs

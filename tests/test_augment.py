@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dusty_jax import augment
-from dusty_jax.projection import ALPHA
+from dusty_jax.codec import ALPHA
 
 
 def _scans(b=64, h=16, w=64, seed=0):

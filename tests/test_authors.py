@@ -279,7 +279,7 @@ def test_bilinear_resize_by_hand():
 
 
 def test_convert_makes_a_run_directory(tmp_path):
-  from dusty_jax import convert
+  from dusty_jax.tools import convert
   pth = os.path.join(DATA, 'authors_dusty2.pth')
   work = str(tmp_path / 'run')
   convert.main(['--pth', pth, '--workdir', work])
@@ -298,11 +298,9 @@ def test_convert_makes_a_run_directory(tmp_path):
 
 
 def test_converted_run_with_a_dataset_serves_invert_and_evaluate(tmp_path):
-  """--data-dir: the dataset's angle table, and the invert and evaluate
+  """--data_dir: the dataset's angle table, and the invert and evaluate
   command lines run on the converted run against that dataset."""
-  import importlib
-  from dusty_jax import convert, evaluate
-  invert_cli = importlib.import_module('dusty_jax.invert')  # the package's invert is a function
+  from dusty_jax.tools import convert, evaluate, invert as invert_cli
   rng = np.random.default_rng(0)
   data = tmp_path / 'data'
   data.mkdir()
@@ -315,7 +313,7 @@ def test_converted_run_with_a_dataset_serves_invert_and_evaluate(tmp_path):
   np.save(tmp_path / 'scan.npy', depth[0])
   work = str(tmp_path / 'run')
   convert.main(['--pth', os.path.join(DATA, 'authors_dusty1.pth'), '--workdir', work,
-                '--data-dir', str(data)])
+                '--data_dir', str(data)])
   params, config = dusty_jax.load_checkpoint(work)
   np.testing.assert_array_equal(np.asarray(params.angles), angles)
   assert config.data.dir == str(data)

@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-from dusty_jax import metrics, projection
+from dusty_jax import codec, metrics
 from dusty_jax.metrics import chamfer, point_sets, protocol
 
 HERE = os.path.dirname(__file__)
@@ -21,7 +21,7 @@ def _scans(sensor, n, seed=0, drop=0.0):
   d = rng.uniform(3, 60, (n,) + sensor.shape).astype(np.float32)
   d[:, :2] = 0
   d[rng.uniform(size=d.shape) < drop] = 0
-  return np.asarray(projection.encode(d, sensor)), d
+  return np.asarray(codec.encode(d, sensor)), d
 
 
 def test_compare_identical_and_separated_sets(tiny):
@@ -32,7 +32,7 @@ def test_compare_identical_and_separated_sets(tiny):
   assert set(m) == {'jsd', 'cov', 'mmd', '1nna', 'swd'}
   assert m['cov'] == 1.0 and m['mmd'] < 1e-7 and abs(m['jsd']) < 1e-12
   assert cache['d_rr'].shape == (6, 6) and cache['real_clouds'].shape == (6, 64, 3)
-  far = np.asarray(projection.encode(d * 0.3, tiny))
+  far = np.asarray(codec.encode(d * 0.3, tiny))
   m2 = metrics.compare(x, far, angles, sensor=tiny, num_points=64, cache=cache)
   assert m2['1nna'] == 1.0 and m2['jsd'] > 0.1 and m2['mmd'] > 0
   # The cache holds the real side only: reusing it changes nothing.
@@ -101,7 +101,7 @@ def test_evaluate_cli(smoke_run, tmp_path):
   _, workdir, _ = smoke_run
   env = dict(os.environ)
   env.pop('XLA_FLAGS', None)
-  r = subprocess.run([sys.executable, '-m', 'dusty_jax.evaluate', '--workdir', workdir,
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.evaluate', '--workdir', workdir,
                       '--num', '4', '--points', '32', '--seeds', '2'], env=env,
                      capture_output=True, text=True, timeout=600)
   assert r.returncode == 0, r.stderr[-3000:]
@@ -114,9 +114,9 @@ def test_evaluate_cli(smoke_run, tmp_path):
   assert ev['seeds']['metric'] == [0, 1] and 'linspace' in ev['subset']
   assert ev['sensor']['height'] == 16 and ev['dusty_jax_version']
   # The paper's protocol, in process: its subset of 4 test scans has 3.
-  from dusty_jax import evaluate
+  from dusty_jax.tools import evaluate
   evaluate.main(['--workdir', workdir, '--num', '4', '--points', '32', '--seeds', '1',
-                 '--protocol', 'paper', '--no-train-row'])
+                 '--protocol', 'paper', '--notrain_row'])
   ev = json.load(open(os.path.join(workdir, 'evaluation.json')))
   assert ev['protocol'] == 'paper' and ev['num'] == 3 and 'skip' in ev['subset']
   assert len(ev['rows']['dusty1']['jsd']) == 1
@@ -125,18 +125,18 @@ def test_evaluate_cli(smoke_run, tmp_path):
 def test_tolerance_tuning_baseline(tiny):
   """HyperOpt tunes beta for the baseline: the score at the chosen beta is
   no worse than at the ends of the search range."""
-  from dusty_jax import evaluate, trainer
+  from dusty_jax import sampling, trainer
   from train_helpers import tiny_config
   setup = trainer.make_setup(tiny_config(model='baseline'), tiny)
   state = trainer.init_state(setup, jax.random.key(0))
-  params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles())
+  params = trainer.generator_params(setup, state.g_params, tiny.nominal_angles())
   rng = np.random.default_rng(1)
   d = rng.uniform(3, 60, (8,) + tiny.shape).astype(np.float32)
   d[rng.uniform(size=d.shape) < 0.2] = 0
-  val = np.asarray(projection.encode(d, tiny))
-  beta = evaluate.tune_tolerance(params, val, trials=6, points=32)
+  val = np.asarray(codec.encode(d, tiny))
+  gen = sampling.sample_scans(params, jax.random.key(0), len(val))
+  beta = protocol.tune_tolerance(val, gen, params.angles, tiny, trials=6, points=32)
   assert 1e-3 <= beta <= 1e-1
-  gen = evaluate._sample_scans(params, jax.random.key(0), len(val))
   score = lambda b: protocol.tolerance_score(metrics.compare(
       val, gen, params.angles, sensor=tiny, num_points=32, tolerance=b))
   assert score(beta) <= max(score(1e-3), score(1e-1)) + 1e-9
@@ -151,9 +151,7 @@ def test_reconstruction_errors_both_protocols(tiny):
   """Table III per scan: the Chamfer distance over valid points (reference)
   or over every pixel with drops at the origin in both clouds (paper), each
   against a k-d tree; x_tilde = -1 is a 120 m range, not a drop."""
-  import importlib
-  import types
-  invert = importlib.import_module('dusty_jax.invert')  # the CLI module
+  from dusty_jax.metrics import reconstruction
   rng = np.random.default_rng(3)
   angles = tiny.nominal_angles()
   target = rng.uniform(2, 100, (2,) + tiny.shape).astype(np.float32)
@@ -161,18 +159,17 @@ def test_reconstruction_errors_both_protocols(tiny):
   target[:, 0, :4] = 119.0  # far returns, reconstructed as x_tilde = -1
   rec = target * rng.uniform(0.9, 1.1, target.shape).astype(np.float32)
   rec[rng.uniform(size=rec.shape) < 0.2] = 0
-  x_tilde = np.array(projection.encode(np.where(rec > 0, rec, 50.0), tiny))
+  x_tilde = np.array(codec.encode(np.where(rec > 0, rec, 50.0), tiny))
   x_tilde[:, 0, :4] = -1.0
-  scan = np.asarray(projection.encode(rec, tiny))
-  depth, valid = projection.decode(scan, tiny)
+  scan = np.asarray(codec.encode(rec, tiny))
+  depth, valid = codec.decode(scan, tiny)
   result = {'inv_depth': x_tilde, 'valid': np.asarray(valid),
-            'points': np.asarray(projection.to_points(depth, angles))}
-  params = types.SimpleNamespace(sensor=tiny)
-  ref = invert.evaluate_batch(params, target, result, angles)
-  paper = invert.evaluate_batch(params, target, result, angles, 'paper')
-  pts_t = np.asarray(projection.to_points(target, angles)) / 120.0
+            'points': np.asarray(codec.to_points(depth, angles))}
+  ref = reconstruction.errors(target, result, angles, tiny)
+  paper = reconstruction.errors(target, result, angles, tiny, 'paper')
+  pts_t = np.asarray(codec.to_points(target, angles)) / 120.0
   pts_r = result['points'] / 120.0
-  vt = np.asarray(projection.valid_depth(target, tiny))
+  vt = np.asarray(codec.valid_depth(target, tiny))
   for i in range(2):
     want_ref = _cd_kdtree(pts_t[i][vt[i]], pts_r[i][result['valid'][i]])
     full_t = np.where(vt[i][..., None], pts_t[i], 0).reshape(-1, 3)
@@ -187,14 +184,13 @@ def test_reconstruction_errors_both_protocols(tiny):
          'points': result['points'][:1]}
   only_far = np.zeros_like(target[:1])
   only_far[0, 0, :4] = 119.0
-  errs = invert.evaluate_batch(params, only_far, one, angles)
+  errs = reconstruction.errors(only_far, one, angles, tiny)
   assert errs['abs_rel'][0] == pytest.approx(1 / 119, rel=1e-4)
   assert errs['delta1'][0] == 1.0
 
 
 def test_invert_cli_records_protocol(smoke_run, tmp_path):
-  import importlib
-  invert = importlib.import_module('dusty_jax.invert')  # the CLI module
+  from dusty_jax.tools import invert
   _, workdir, _ = smoke_run
   out = tmp_path / 'inv'
   invert.main(['--workdir', workdir, '--split', 'val', '--num', '2', '--steps', '2',

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.metrics import ground_truth
 from dusty_jax.sensor import tiny_sensor
 
@@ -33,7 +33,7 @@ def _scene(seed=0):
 
 def test_perfect_model_scores_perfectly():
   sensor, complete, p, observed = _scene()
-  x = np.asarray(projection.encode(complete, sensor))
+  x = np.asarray(codec.encode(complete, sensor))
   out = ground_truth.disentanglement(sensor, x, 1.0 - p, observed, complete, p)
   assert out['completion']['pixels'] == int(((complete > 0) & (observed == 0)).sum()) > 0
   assert out['completion']['abs_rel'] < 1e-5 and out['fit']['abs_rel'] < 1e-5
@@ -44,7 +44,7 @@ def test_perfect_model_scores_perfectly():
 
 def test_baseline_rendering_drops_is_not_completion_and_errors_grow():
   sensor, complete, p, observed = _scene(1)
-  x_obs = np.asarray(projection.encode(observed, sensor))  # drops at ALPHA
+  x_obs = np.asarray(codec.encode(observed, sensor))  # drops at ALPHA
   out = ground_truth.disentanglement(sensor, x_obs, np.ones_like(p), observed,
                                      complete, p, renders_drop=x_obs <= -1.0)
   assert out['coverage'] == 0.0 and out['completion']['pixels'] == 0

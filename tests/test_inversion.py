@@ -4,7 +4,6 @@ import json
 import os
 import subprocess
 import sys
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -12,8 +11,8 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import corrupt, inversion, projection, sampling
-from dusty_jax.projection import ALPHA
+from dusty_jax import codec, corrupt, inversion, sampling
+from dusty_jax.codec import ALPHA
 
 HERE = os.path.dirname(__file__)
 
@@ -81,12 +80,12 @@ def test_edge_cases(gen):
 
 
 def test_all_models_invert(tiny, tmp_path):
-  from dusty_jax import models, trainer
+  from dusty_jax import trainer
   from train_helpers import tiny_config
   for name in ('baseline', 'dusty2'):
     setup = trainer.make_setup(tiny_config(model=name), tiny)
     state = trainer.init_state(setup, jax.random.key(0))
-    params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles())
+    params = trainer.generator_params(setup, state.g_params, tiny.nominal_angles())
     scans, _ = _targets(params, n=2)
     out = inversion.invert(params, scans, num_steps=3)
     assert out['inv_depth'].shape == (2,) + tiny.shape
@@ -95,14 +94,14 @@ def test_all_models_invert(tiny, tmp_path):
 
 def test_corruptions(tiny):
   d = np.random.default_rng(0).uniform(2, 80, (4,) + tiny.shape).astype(np.float32)
-  x = projection.encode(d, tiny)
+  x = codec.encode(d, tiny)
   dropped = corrupt.apply('drop:0.9', jax.random.key(0), x, tiny)
   kept = float(np.mean(np.asarray(dropped) > ALPHA))
   assert 0.06 < kept < 0.14
   beams = np.asarray(corrupt.apply('beams:4', None, x, tiny))
   assert (beams[:, 1::4] == ALPHA).all() and (beams[:, ::4] == np.asarray(x)[:, ::4]).all()
   noisy = corrupt.apply('noise:0.01', jax.random.key(1), x, tiny)
-  nd, nv = projection.decode(noisy, tiny)
+  nd, nv = codec.decode(noisy, tiny)
   resid = (np.asarray(nd) - d)[np.asarray(nv)]
   assert abs(resid.std() - 0.01 * (120 - 0.9)) < 0.1
   same = corrupt.apply('drop:0.5', jax.random.key(3), x, tiny)
@@ -111,14 +110,6 @@ def test_corruptions(tiny):
                    ('blur:1', 'unknown corruption'), ('drop', 'NAME:VALUE')]:
     with pytest.raises(ValueError, match=msg):
       corrupt.parse(bad)
-
-
-def test_invert_is_callable_after_cli_import(gen):
-  import importlib
-  importlib.import_module('dusty_jax.invert')
-  scans, _ = _targets(gen, n=1)
-  out = dusty_jax.invert(gen, scans, num_steps=2)
-  assert out['latent'].shape == (1, gen.latent_dim)
 
 
 def test_cli_on_files_and_split(smoke_run, tmp_path):
@@ -133,7 +124,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
   env = dict(os.environ)
   env.pop('XLA_FLAGS', None)
   out = tmp_path / 'out'
-  r = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                       '--input', str(inp), '--corrupt', 'drop:0.5', '--out', str(out),
                       '--steps', '10'], env=env, capture_output=True, text=True,
                      timeout=600)
@@ -143,7 +134,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
       assert (out / f'{stem}{suffix}').is_file(), f'{stem}{suffix}'
   m = json.load(open(out / 'metrics.json'))
   assert len(m['per_scan']) == 3 and 'AbsRel' in r.stdout and 'CD x1e4' in r.stdout
-  r = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+  r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                       '--split', 'val', '--num', '2', '--steps', '5', '--out', str(out / 's')],
                      env=env, capture_output=True, text=True, timeout=600)
   assert r.returncode == 0, r.stderr[-3000:]
@@ -152,7 +143,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
   gt = json.load(open(out / 's' / 'metrics.json'))['ground_truth']
   assert 0 <= gt['ece'] <= 1 and np.isfinite(gt['complete_depth']['abs_rel'])
   assert (out / 's' / 'reliability.png').is_file()
-  bad = subprocess.run([sys.executable, '-m', 'dusty_jax.invert', '--workdir', workdir,
+  bad = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                         '--input', str(tmp_path / 'missing.bin')], env=env,
                        capture_output=True, text=True)
   assert bad.returncode != 0 and 'missing.bin: no such file' in bad.stderr
@@ -175,8 +166,8 @@ def test_render_drops_on_clean_scan(gen):
 
 def test_bad_inputs_get_clear_errors(gen, tiny):
   t = _targets(gen, n=1)[0]
-  depth, _ = projection.decode(t, gen.sensor)
-  with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*projection\.encode'):
+  depth, _ = codec.decode(t, gen.sensor)
+  with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*codec\.encode'):
     inversion.invert(gen, depth, num_steps=2)  # metres by mistake
   with pytest.raises(ValueError, match='num_steps'):
     inversion.invert(gen, t, num_steps=0)
@@ -203,17 +194,16 @@ def test_legacy_prng_key_is_one_key(gen):
 
 
 def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
-  import importlib
-  cli = importlib.import_module('dusty_jax.invert')
+  from dusty_jax.data import scan_files
   good = np.full(tiny.shape, 10.0, np.float32)
   np.save(tmp_path / 'a.npy', good)
   np.save(tmp_path / 'b.npy', np.zeros((3, 3), np.float32))  # wrong shape
   (tmp_path / 'c.bin').write_bytes(b'\0' * 20)  # not whole points
   logs = []
-  items = cli.read_inputs(str(tmp_path), tiny, log=logs.append)
+  items = scan_files.read_scans(str(tmp_path), tiny, log=logs.append)
   assert [n for n, _ in items] == ['a']
   assert any('2 of 3 input files skipped' in l for l in logs)
   assert any('b.npy' in l for l in logs) and any('c.bin' in l for l in logs)
   (tmp_path / 'a.npy').unlink()
   with pytest.raises(ValueError, match='none of 2 input files'):
-    cli.read_inputs(str(tmp_path), tiny, log=logs.append)
+    scan_files.read_scans(str(tmp_path), tiny, log=logs.append)

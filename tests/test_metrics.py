@@ -5,7 +5,7 @@ import pytest
 import scipy.ndimage
 from scipy.spatial import cKDTree
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.metrics import chamfer, clouds, depth, point_sets, swd
 
 
@@ -189,7 +189,7 @@ def test_depth_errors_against_numpy():
 def test_scans_to_clouds_units(tiny):
   d = np.full((1,) + tiny.shape, 60.0, np.float32)
   d[0, 0, 0] = 0
-  pts, valid = clouds.scans_to_clouds(projection.encode(d, tiny),
+  pts, valid = clouds.scans_to_clouds(codec.encode(d, tiny),
                                       tiny.nominal_angles(), tiny)
   norms = np.linalg.norm(np.asarray(pts), axis=-1)
   np.testing.assert_allclose(norms[np.asarray(valid)], 0.5, rtol=1e-4)

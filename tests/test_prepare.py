@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from conftest import random_depth, sensor_order_points
-from dusty_jax import prepare
-from dusty_jax.data import arrays, kitti as kitti_io, mpo as mpo_io
+from dusty_jax.data import arrays, kitti as kitti_io
+from dusty_jax.data import prepare
 from dusty_jax.sensor import get_sensor
+from dusty_jax.tools import prepare as prepare_tool
 
 
 def _kitti_tree(root, kitti, seqs=(('00', 3), ('08', 2), ('11', 1))):
@@ -55,15 +56,15 @@ def test_prepare_kitti_layout(kitti, tmp_path):
 def test_prepare_cli_and_errors(kitti, tmp_path, capsys):
   root, out = str(tmp_path / 'kitti'), str(tmp_path / 'out')
   _kitti_tree(root, kitti, seqs=(('00', 1),))
-  prepare.main(['--dataset', 'kitti', '--root', root, '--out', out])
+  prepare_tool.main(['--dataset', 'kitti', '--root', root, '--out', out])
   assert 'train: 1 scans written' in capsys.readouterr().out
-  with pytest.raises(SystemExit, match="unknown dataset 'nuscenes'"):
-    prepare.main(['--dataset', 'nuscenes', '--root', root, '--out', out])
+  with pytest.raises(SystemExit, match=r'--dataset=nuscenes: value should be one of <kitti\|mpo>'):
+    prepare_tool.main(['--dataset', 'nuscenes', '--root', root, '--out', out])
   with pytest.raises(SystemExit, match='no such directory'):
-    prepare.main(['--dataset', 'kitti', '--root', str(tmp_path / 'nope'),
-                  '--out', out])
+    prepare_tool.main(['--dataset', 'kitti', '--root', str(tmp_path / 'nope'),
+                       '--out', out])
   with pytest.raises(SystemExit, match='sequences: no such directory'):
-    prepare.main(['--dataset', 'kitti', '--root', str(tmp_path), '--out', out])
+    prepare_tool.main(['--dataset', 'kitti', '--root', str(tmp_path), '--out', out])
 
 
 def test_read_bin_rejects_nan(tmp_path):
@@ -95,7 +96,7 @@ def test_load_split_shape_mismatch(tmp_path, kitti):
   np.save(tmp_path / 'train.npy', np.zeros((2, 32, 256), np.float32))
   with pytest.raises(ValueError, match=r'train\.npy: array of shape'):
     arrays.load_split(str(tmp_path), 'train', kitti)
-  with pytest.raises(FileNotFoundError, match='dusty_jax.prepare'):
+  with pytest.raises(FileNotFoundError, match='dusty_jax.tools.prepare'):
     arrays.load_split(str(tmp_path), 'val', kitti)
 
 

@@ -1,14 +1,13 @@
 """Generators shipped in the package: export/load round trip, and inversion
 with the trained study model where it is present."""
 
-import os
 
 import jax
 import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import pretrained, projection, trainer
+from dusty_jax import codec, generator, pretrained, trainer
 from train_helpers import tiny_config
 
 
@@ -16,12 +15,12 @@ from train_helpers import tiny_config
 def test_export_load_round_trip(tiny, tmp_path, model):
   setup = trainer.make_setup(tiny_config(model=model), tiny)
   state = trainer.init_state(setup, jax.random.key(0))
-  params = trainer.generator_bundle(setup, state.g_params, tiny.nominal_angles(),
+  params = trainer.generator_params(setup, state.g_params, tiny.nominal_angles(),
                                     tolerance=0.0125)
   path = pretrained.export(params, 'tiny', source='test', directory=str(tmp_path))
-  back = pretrained.load_file(path)
-  assert (back.model, back.sensor, back.latent_dim, back.tolerance, back.eqlr) == (
-      params.model, params.sensor, params.latent_dim, 0.0125, params.eqlr)
+  back = generator.load_file(path)
+  assert (back.settings, back.sensor, back.tolerance) == (params.settings, params.sensor,
+                                                         0.0125)
   z = jax.random.normal(jax.random.key(1), (3, params.latent_dim))
   a = dusty_jax.generate(params, z, jax.random.key(2))
   b = dusty_jax.generate(back, z, jax.random.key(2))
@@ -47,7 +46,7 @@ def test_trained_dusty1_fits_and_completes_a_held_out_simulated_scan():
   from dusty_jax.metrics import ground_truth
   params = dusty_jax.load_pretrained('sim-dusty1')
   s = synthetic.render_scan(7_000_001, params.sensor)
-  target = projection.encode(s.depth, params.sensor)
+  target = codec.encode(s.depth, params.sensor)
   rec = dusty_jax.invert(params, target, num_steps=300, key=jax.random.key(0))
   g = ground_truth.disentanglement(params.sensor, rec['inv_depth'][None],
                                    rec['measurability'][None], s.depth[None],

@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from dusty_jax import prepare, projection
+from dusty_jax import prepare
 from dusty_jax.data import arrays, kitti as kitti_io, synthetic
 
 

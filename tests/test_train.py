@@ -8,13 +8,12 @@ import subprocess
 import sys
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import checkpoint, configs, parallel, trainer
+from dusty_jax import configs, parallel, trainer
 from event_files import read_events, scalars
 from train_helpers import run_steps, tiny_config
 
@@ -151,7 +150,7 @@ def test_missing_dataset_message(tmp_path):
   config = tiny_config()
   config.data.dir = str(tmp_path / 'nothing')
   config.data.name = 'kitti'
-  with pytest.raises(FileNotFoundError, match=r'dusty_jax\.prepare.*synthetic\.py'):
+  with pytest.raises(FileNotFoundError, match=r'dusty_jax\.tools\.prepare.*synthetic\.py'):
     trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
 
 
@@ -171,7 +170,7 @@ def test_cli_overrides_and_bad_field(tmp_path):
   assert os.path.isdir(tmp_path / 'w' / 'checkpoints' / '2')
   missing = subprocess.run(cmd + ['--config.data.dir=/nonexistent'], env=env,
                            capture_output=True, text=True)
-  assert missing.returncode != 0 and 'dusty_jax.prepare' in missing.stderr
+  assert missing.returncode != 0 and 'dusty_jax.tools.prepare' in missing.stderr
 
 
 def test_ema_rampup_follows_generator_early():
@@ -246,16 +245,16 @@ def test_damaged_latest_checkpoint_falls_back(smoke_run, tmp_path, damage):
     big = files[-1]
     big.write_bytes(big.read_bytes()[:big.stat().st_size // 3])
   messages = []
-  params, _ = checkpoint.load_checkpoint(str(copy))  # falls back to step 2
-  ref, _ = checkpoint.load_checkpoint(str(workdir), step=2)
+  params, _ = dusty_jax.load_checkpoint(str(copy))  # falls back to step 2
+  ref, _ = dusty_jax.load_checkpoint(str(workdir), step=2)
   for a, b in zip(jax.tree.leaves(params.variables), jax.tree.leaves(ref.variables)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   with pytest.raises(FileNotFoundError, match=r'saved steps: \[2, 4\]'):
-    checkpoint.load_checkpoint(str(workdir), step=3)
+    dusty_jax.load_checkpoint(str(workdir), step=3)
   if damage != 'empty':
     return
   # Resume trains on from step 2 and can save step 4 again.
   trainer.train_and_evaluate(config, str(copy), log=messages.append)
   assert any('step 4' in m and 'does not restore' in m for m in messages)
   assert any('resumed from step 2' in m for m in messages)
-  assert checkpoint.load_checkpoint(str(copy))[0] is not None
+  assert dusty_jax.load_checkpoint(str(copy))[0] is not None

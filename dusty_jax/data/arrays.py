@@ -40,8 +40,8 @@ def load_split(directory: str, split: str, sensor: SensorSpec,
   if not os.path.isfile(path):
     raise FileNotFoundError(
         f'{path}: no prepared {split!r} split here. Prepare real data with '
-        '`python -m dusty_jax.prepare --dataset kitti --root DIR --out DIR`, '
-        'or simulate some with `python -m dusty_jax.synthesize`.')
+        '`python -m dusty_jax.tools.prepare --dataset kitti --root DIR --out DIR`, '
+        'or simulate some with `python -m dusty_jax.tools.synthesize`.')
   arr = np.load(path, mmap_mode='r')
   _check_shape(path, arr, sensor, lead=1)
   if arr.shape[0] == 0:
@@ -59,6 +59,16 @@ def load_angles(directory: str, sensor: SensorSpec) -> np.ndarray:
   if arr.shape[0] != 2 or not np.isfinite(arr).all():
     raise ValueError(f'{path}: expected finite (2, H, W) elevation/azimuth')
   return arr.astype(np.float32)
+
+
+def load_ground_truth(directory: str, split: str, sensor: SensorSpec, num: int):
+  """(complete depth, drop probability) of a simulated split's first ``num``
+  scans, or None where the split has no ground truth (real data)."""
+  try:
+    return (np.asarray(load_split(directory, split, sensor, 'complete')[:num]),
+            np.asarray(load_split(directory, split, sensor, 'drop_prob')[:num]))
+  except FileNotFoundError:
+    return None
 
 
 def read_meta(directory: str) -> dict:

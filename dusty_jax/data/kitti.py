@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax.data import unfolding
 from dusty_jax.sensor import SensorSpec
 
 # Sequences per split, as in the paper and the authors' code.
@@ -32,7 +32,7 @@ def read_bin(path: str) -> np.ndarray:
                      f'{POINT_BYTES} (float32 x, y, z, reflectance per point); '
                      'truncated or not a KITTI velodyne file')
   points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-  return projection.check_points(points, path)
+  return unfolding.check_points(points, path)
 
 
 def write_bin(path: str, points: np.ndarray):
@@ -64,5 +64,5 @@ def list_split(root: str, split: str) -> list[str]:
 
 def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
   """Reads and unfolds one scan: (H, W) depth[, (H, W, 3) xyz], report."""
-  return projection.unfold_scan(read_bin(path), sensor, source=path,
+  return unfolding.unfold_scan(read_bin(path), sensor, source=path,
                                 return_xyz=return_xyz)

@@ -16,7 +16,7 @@ import re
 
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax.data import unfolding
 from dusty_jax.sensor import SensorSpec
 
 SPLITS = {
@@ -65,7 +65,7 @@ def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
     ring = arr[:, -1]
     if not np.isfinite(ring).all() or (ring != np.round(ring)).any():
       raise ValueError(f'{path}: ring ids (last column) must be integers')
-    return projection.unfold_rings(arr[:, :3], ring, sensor, source=path,
+    return unfolding.unfold_rings(arr[:, :3], ring, sensor, source=path,
                                    return_xyz=return_xyz)
   if arr.ndim == 3:
     h, w, c = arr.shape

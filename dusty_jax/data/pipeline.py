@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.data import arrays
 from dusty_jax.sensor import SensorSpec
 
@@ -34,7 +34,7 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
     if not os.path.isfile(arrays.split_path(directory, 'train')):
       raise FileNotFoundError(
           f'{directory}: no prepared training split (train.npy). Prepare the '
-          f'dataset first, e.g. `python -m dusty_jax.prepare --dataset '
+          f'dataset first, e.g. `python -m dusty_jax.tools.prepare --dataset '
           f'{config.data.name or "kitti"} --root /path/to/raw --out {directory}`; '
           'or train on simulated scans with --config experiments/synthetic.py, '
           'which runs as is.')
@@ -68,4 +68,4 @@ class Batches:
     rng = np.random.default_rng((self.seed, step))
     idx = rng.integers(0, len(self.depth), self.global_batch)
     idx = np.sort(idx[self.offset:self.offset + self.local])
-    return np.asarray(projection.encode(self.depth[idx], self.sensor))
+    return np.asarray(codec.encode(self.depth[idx], self.sensor))

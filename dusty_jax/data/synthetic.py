@@ -344,7 +344,7 @@ def render_scan(seed: int, sensor: SensorSpec, kind: str | None = None,
 
 
 def to_sensor_order(depth: np.ndarray, sensor: SensorSpec) -> np.ndarray:
-  """(N, 4) points of a depth image in KITTI sensor order (see projection).
+  """(N, 4) points of a depth image in KITTI sensor order (see data/unfolding.py).
 
   Rings top first; each ring counter-clockwise from straight ahead. Points
   sit at the sensor's nominal angles, so unfolding reproduces ``depth``.
@@ -435,13 +435,13 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
 
 def save_preview(path: str, directory: str, sensor: SensorSpec, num: int = 4):
   """PNG of observed depth, complete depth and drop probability, per scan."""
-  from dusty_jax import projection, writers
+  from dusty_jax import codec, writers
   obs = arrays.load_split(directory, 'train', sensor)[:num]
   comp = arrays.load_split(directory, 'train', sensor, 'complete')[:num]
   prob = arrays.load_split(directory, 'train', sensor, 'drop_prob')[:num]
   rows = []
   for o, c, p in zip(obs, comp, prob):
-    rows.append([writers.inv_depth_tile(np.asarray(projection.encode(o, sensor)))])
-    rows.append([writers.inv_depth_tile(np.asarray(projection.encode(c, sensor)))])
+    rows.append([writers.inv_depth_tile(np.asarray(codec.encode(o, sensor)))])
+    rows.append([writers.inv_depth_tile(np.asarray(codec.encode(c, sensor)))])
     rows.append([writers.prob_tile(p)])
   writers.save_grid(path, rows, scale=2)

@@ -18,7 +18,6 @@ in units of 120 m). Measured on the 2-core CPU: see benchmarks/chamfer_fps.py.
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp

@@ -32,14 +32,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.sensor import SensorSpec
 
 
 def scans_to_clouds(scans, angles, sensor: SensorSpec, tolerance: float = 0.0):
   """(B, H, W) inverse-depth scans -> (B, H*W, 3) points / max_depth, valid."""
-  depth, valid = projection.decode(scans, sensor, tolerance)
-  pts = projection.to_points(depth, angles) / sensor.max_depth
+  depth, valid = codec.decode(scans, sensor, tolerance)
+  pts = codec.to_points(depth, angles) / sensor.max_depth
   b = pts.shape[0]
   return pts.reshape(b, -1, 3), valid.reshape(b, -1)
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dusty_jax import projection
+from dusty_jax import codec
 from dusty_jax.metrics import calibration
 
 
@@ -49,14 +49,29 @@ def roc_auc(score, label) -> float:
   return float((ranks[label].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
-def depth_errors(pred, target, mask) -> dict:
-  """MAE (m) and AbsRel over ``mask``, pooled over all scans' pixels."""
+def pooled_errors(pred, target, mask) -> dict:
+  """MAE (m) and AbsRel over ``mask``, pooled over all scans' pixels (not
+  per scan, unlike Table III's metrics/depth.py)."""
   mask = np.asarray(mask, bool)
   if not mask.any():
     return {'mae_m': float('nan'), 'abs_rel': float('nan'), 'pixels': 0}
   err = np.abs(pred[mask] - target[mask])
   return {'mae_m': float(err.mean()), 'abs_rel': float((err / target[mask]).mean()),
           'pixels': int(mask.sum())}
+
+
+def completion(sensor, inv_depth, complete, region, renders_drop=None):
+  """(errors, coverage) of x_tilde against the complete depth over ``region``.
+
+  Pixels the model renders as dropped in x_tilde itself (``renders_drop``,
+  the baseline) are not completed: ``coverage`` is the completed fraction of
+  ``region`` and the errors are over completed pixels.
+  """
+  region = np.asarray(region, bool)
+  covered = region if renders_drop is None else region & ~np.asarray(renders_drop, bool)
+  pred = np.asarray(codec.complete_depth(inv_depth, sensor), np.float64)
+  errors = pooled_errors(pred, np.asarray(complete, np.float64), covered)
+  return errors, float(covered.sum() / max(region.sum(), 1))
 
 
 def disentanglement(sensor, inv_depth, measurability, observed, complete,
@@ -80,20 +95,20 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
   """
   observed = np.asarray(observed, np.float64)
   complete = np.asarray(complete, np.float64)
-  valid_obs = np.asarray(projection.valid_depth(observed, sensor))
-  surface = np.asarray(projection.valid_depth(complete, sensor))
-  completion = surface & ~valid_obs
-  covered = completion if renders_drop is None else completion & ~np.asarray(renders_drop, bool)
-  pred = np.asarray(projection.complete_depth(inv_depth, sensor), np.float64)
+  valid_obs = np.asarray(codec.valid_depth(observed, sensor))
+  surface = np.asarray(codec.valid_depth(complete, sensor))
+  filled, coverage = completion(sensor, inv_depth, complete, surface & ~valid_obs,
+                                renders_drop)
+  pred = np.asarray(codec.complete_depth(inv_depth, sensor), np.float64)
   m = np.clip(np.asarray(measurability, np.float64), 0.0, 1.0)
   truth = 1.0 - np.asarray(drop_prob, np.float64)
   returned = valid_obs.astype(np.float64)
   cal = calibration.reliability(m, truth, bins=bins)
   cal_surface = calibration.reliability(m, truth, bins=bins, mask=surface)
   return {
-      'completion': depth_errors(pred, complete, covered),
-      'fit': depth_errors(pred, observed, valid_obs),
-      'coverage': float(covered.sum() / max(completion.sum(), 1)),
+      'completion': filled,
+      'fit': pooled_errors(pred, observed, valid_obs),
+      'coverage': coverage,
       'measurability': {
           'ece': cal['ece'],
           'ece_surface': cal_surface['ece'],

@@ -185,20 +185,46 @@ def provenance(protocol: str, num: int, points, seeds, subset_rule: str,
           'dusty_jax_version': version(), **extra}
 
 
-def format_table(rows: dict) -> str:
-  """{label: {metric: [values over seeds]}} -> Table II layout, mean +- std."""
-  head = f'{"":24s}' + ''.join(f'{n:>18s}' for _, n, _ in ROW_SCALES)
+def format_table(rows: dict, columns=ROW_SCALES) -> str:
+  """{label: {metric: value or [values over seeds]}} -> a table in the
+  paper's layout (Table II by default; reconstruction.COLUMNS for Table
+  III): mean +- std where there are several values."""
+  width = 18 if columns is ROW_SCALES else 12
+  head = f'{"":24s}' + ''.join(f'{n:>{width}s}' for _, n, _ in columns)
   lines = [head, '-' * len(head)]
   for label, m in rows.items():
     cells = []
-    for k, _, s in ROW_SCALES:
-      v = np.asarray(m[k] if k in m else m[_LEGACY_KEYS[k]], np.float64) * s
-      cells.append(f'{v.mean():10.3f} +- {v.std():5.3f}' if len(v) > 1
-                   else f'{v.mean():18.3f}')
-    lines.append(f'{label:24s}' + ''.join(f'{c:>18s}' for c in cells))
+    for k, _, s in columns:
+      v = np.atleast_1d(np.asarray(m[k] if k in m else m[_LEGACY_KEYS[k]],
+                                   np.float64)) * s
+      cells.append(f'{np.nanmean(v):10.3f} +- {np.nanstd(v):5.3f}' if len(v) > 1
+                   else f'{v.mean():{width}.3f}')
+    lines.append(f'{label:24s}' + ''.join(f'{c:>{width}s}' for c in cells))
   return '\n'.join(lines)
 
 
 def tolerance_score(m: dict) -> float:
   """The paper's weighted score for tuning the baseline's tolerance beta."""
   return m['jsd'] * 10 - m['cov'] + m['mmd'] * 1e2 + m['1nna']
+
+
+def tune_tolerance(val_scans, generated, angles, sensor: SensorSpec, trials: int,
+                   points: int = 512, seed: int = 0, protocol: str = 'reference') -> float:
+  """The baseline's drop tolerance beta: HyperOpt TPE over [1e-3, 1e-1]
+  (log-uniform) minimising :func:`tolerance_score` of ``generated`` (scans
+  sampled with tolerance 0) against ``val_scans``, as in the paper."""
+  try:
+    import hyperopt
+  except ImportError:
+    raise ImportError('tuning needs hyperopt: pip install "dusty_jax[tune]"') from None
+  cache = {}
+
+  def objective(beta):
+    m = compare(val_scans, generated, angles, sensor=sensor, protocol=protocol,
+                num_points=points, seed=seed, tolerance=beta, cache=cache)
+    return tolerance_score(m)
+
+  best = hyperopt.fmin(objective, hyperopt.hp.loguniform('beta', np.log(1e-3), np.log(1e-1)),
+                       algo=hyperopt.tpe.suggest, max_evals=trials,
+                       rstate=np.random.default_rng(seed), show_progressbar=True)
+  return float(best['beta'])

@@ -1,4 +1,4 @@
-"""Point cloud <-> range image, and the inverse-depth codec.
+"""Point cloud -> range image (numpy; offline data preparation).
 
 Two ways to turn a point cloud into an H x W image:
   * :func:`unfold_scan` follows the sensor's own firing order (KITTI stores
@@ -7,13 +7,8 @@ Two ways to turn a point cloud into an H x W image:
     files have no ring order.
 :func:`unfold_rings` places points whose ring id is known (MPO).
 
-Back to points with :func:`to_points`, using a per-pixel angle table
-(:func:`estimate_angles` averages it over training scans).
-
-The codec maps metric depth d to ``x`` in [-1, 1]: 1/d, with (0.9, 120) m
-mapped linearly so that 120 m is -1 and 0.9 m is +1. A point-drop is the
-constant ALPHA = -1. Valid means min_depth < d < max_depth strictly, so a
-valid pixel always encodes strictly above ALPHA.
+:func:`estimate_angles` (or :class:`AngleAccumulator` over many scans)
+averages the per-pixel angle table that codec.to_points back-projects with.
 """
 
 from __future__ import annotations
@@ -21,76 +16,12 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
-import jax.numpy as jnp
 import numpy as np
 
+from dusty_jax.codec import valid_depth
 from dusty_jax.sensor import SensorSpec
 
-ALPHA = -1.0  # the point-drop constant in normalised inverse depth.
 
-
-# ----------------------------------------------------------------------------
-# Inverse-depth codec (jnp: works in jit, on numpy inputs too).
-# ----------------------------------------------------------------------------
-
-
-def valid_depth(depth, sensor: SensorSpec):
-  """True where depth is finite and strictly inside the sensor's range."""
-  depth = jnp.asarray(depth)
-  return jnp.isfinite(depth) & (depth > sensor.min_depth) & (
-      depth < sensor.max_depth)
-
-
-def _inv_bounds(sensor):
-  return 1.0 / sensor.max_depth, 1.0 / sensor.min_depth
-
-
-def encode(depth, sensor: SensorSpec):
-  """Metric depth (any shape) -> normalised inverse depth in [-1, 1].
-
-  Zero, negative, NaN, inf and out-of-range depths become ALPHA, never NaN.
-  """
-  depth = jnp.asarray(depth, jnp.float32)
-  valid = valid_depth(depth, sensor)
-  lo, hi = _inv_bounds(sensor)
-  safe = jnp.where(valid, depth, sensor.max_depth)
-  x = 2.0 * (1.0 / safe - lo) / (hi - lo) - 1.0
-  # A valid depth just below max_depth may round to exactly ALPHA in float32;
-  # keep it distinguishable from a drop.
-  x = jnp.clip(x, jnp.nextafter(jnp.float32(ALPHA), jnp.float32(0)), 1.0)
-  return jnp.where(valid, x, ALPHA)
-
-
-def decode(x, sensor: SensorSpec, tolerance: float = 0.0):
-  """Normalised inverse depth -> (metric depth, valid mask).
-
-  A pixel counts as dropped when ``|x - ALPHA| / 2 <= tolerance`` (the
-  paper's relative tolerance beta for the baseline model; 0 for DUSty, where
-  only exactly ALPHA is a drop). Dropped pixels get depth 0. NaN counts as
-  dropped.
-  """
-  x = jnp.asarray(x, jnp.float32)
-  valid = jnp.isfinite(x) & ((x - ALPHA) / 2.0 > tolerance)
-  lo, hi = _inv_bounds(sensor)
-  xc = jnp.clip(jnp.where(valid, x, 0.0), -1.0, 1.0)
-  inv = (xc + 1.0) / 2.0 * (hi - lo) + lo
-  return jnp.where(valid, 1.0 / inv, 0.0), valid
-
-
-def complete_depth(x_tilde, sensor: SensorSpec):
-  """A complete inverse depth (DUSty's x_tilde) -> metric depth everywhere.
-
-  Unlike :func:`decode`, nothing is a drop: x_tilde = ALPHA is the far end
-  of the range (max_depth), not a missing point.
-  """
-  x = jnp.clip(jnp.asarray(x_tilde, jnp.float32), ALPHA, 1.0)
-  lo, hi = _inv_bounds(sensor)
-  return 1.0 / ((x + 1.0) / 2.0 * (hi - lo) + lo)
-
-
-# ----------------------------------------------------------------------------
-# Point clouds -> range images (numpy; data preparation).
-# ----------------------------------------------------------------------------
 
 
 @dataclasses.dataclass
@@ -307,8 +238,8 @@ def spherical_projection(points: np.ndarray, sensor: SensorSpec,
 
 
 # ----------------------------------------------------------------------------
-# Range images -> point clouds.
-# ----------------------------------------------------------------------------
+
+
 
 
 class AngleAccumulator:
@@ -356,28 +287,9 @@ class AngleAccumulator:
     return np.stack([el, az]).astype(np.float32)
 
 
-def depth_to_xyz_image(depth: np.ndarray, angles: np.ndarray) -> np.ndarray:
-  """(H, W) depth and (2, H, W) angles -> (H, W, 3) points (numpy)."""
-  el, az = angles[0], angles[1]
-  r = depth * np.cos(el)
-  return np.stack([r * np.cos(az), r * np.sin(az), depth * np.sin(el)], -1)
-
-
 def estimate_angles(xyz_images, sensor: SensorSpec) -> np.ndarray:
   """Per-pixel angle table from an iterable of (H, W, 3) point images."""
   acc = AngleAccumulator(sensor)
   for img in xyz_images:
     acc.add(img)
   return acc.result()
-
-
-def to_points(depth, angles):
-  """Back-projects depth (..., H, W) with angles (2, H, W) to (..., H, W, 3).
-
-  jnp; dropped pixels (depth 0) land at the origin, so pair the result with
-  the valid mask from :func:`decode`.
-  """
-  depth = jnp.asarray(depth)
-  el, az = angles[0], angles[1]
-  r = depth * jnp.cos(el)
-  return jnp.stack([r * jnp.cos(az), r * jnp.sin(az), depth * jnp.sin(el)], -1)

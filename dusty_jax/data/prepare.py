@@ -1,6 +1,6 @@
 """Turns a KITTI or MPO folder into prepared arrays (see data/arrays.py).
 
-    python -m dusty_jax.prepare --dataset kitti --root /data/kitti --out data/kitti
+The command line is ``python -m dusty_jax.tools.prepare``.
 
 One unreadable or malformed scan is reported and skipped, with a count at the
 end; it never stops the conversion or drops silently. So is a scan with far
@@ -12,7 +12,6 @@ its old array removed (said so), and a run that finds no scan at all fails.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import warnings
@@ -20,8 +19,8 @@ import warnings
 import numpy as np
 import tqdm
 
-from dusty_jax import projection
-from dusty_jax.data import arrays, kitti, mpo
+from dusty_jax import codec
+from dusty_jax.data import arrays, kitti, mpo, unfolding
 from dusty_jax.sensor import SensorSpec, get_sensor
 
 READERS = {'kitti': kitti, 'mpo': mpo}
@@ -32,7 +31,7 @@ MIN_RING_FRACTION = 0.25
 
 def junk_reason(depth, sensor: SensorSpec) -> str | None:
   """Why an unfolded scan is too sparse to train on, or None."""
-  valid = np.asarray(projection.valid_depth(depth, sensor))
+  valid = np.asarray(codec.valid_depth(depth, sensor))
   frac = valid.mean()
   rings = int(valid.any(axis=1).sum())
   if frac < MIN_VALID_FRACTION:
@@ -90,7 +89,7 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
   os.makedirs(out, exist_ok=True)
   meta = {'dataset': dataset, 'sensor': sensor.name, 'shape': list(sensor.shape),
           'splits': {}, 'skipped': {}}
-  acc = projection.AngleAccumulator(sensor)
+  acc = unfolding.AngleAccumulator(sensor)
   listed = {split: reader.list_split(root, split) for split in splits}
   if not any(listed.values()):
     raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '
@@ -122,23 +121,3 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
     raise ValueError(f'{root}: every scan file was skipped; nothing prepared '
                      f'(see the reasons above)')
   return meta
-
-
-def main(argv=None):
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument('--dataset', required=True, help='kitti or mpo')
-  parser.add_argument('--root', required=True, help='dataset root folder')
-  parser.add_argument('--out', required=True, help='output folder')
-  parser.add_argument('--splits', default=','.join(SPLITS))
-  args = parser.parse_args(argv)
-  try:
-    meta = prepare(args.dataset, args.root, args.out,
-                   splits=tuple(args.splits.split(',')))
-  except (ValueError, FileNotFoundError) as e:
-    sys.exit(f'error: {e}')
-  total_skipped = sum(len(v) for v in meta['skipped'].values())
-  print(f'done: {meta["splits"]} -> {args.out}; {total_skipped} files skipped')
-
-
-if __name__ == '__main__':
-  main()

@@ -1,0 +1,223 @@
+"""What a trained generator is, in memory and on disk.
+
+In memory, :class:`GeneratorParams`: the generator's Flax variables and the
+angle table (pytree leaves), with the sensor, the model settings and the drop
+tolerance as static metadata. It is what ``sample``, ``generate`` and
+``invert`` take, and it passes through jit, vmap and grad.
+
+On disk, two forms, both read without the trainer, the discriminator, the
+optimiser states or the data pipeline:
+  * a training run directory: ``generator.json`` (sensor, model settings,
+    tolerance) and ``angles.npy``, written when training starts, plus the
+    generator's variables inside the run's orbax checkpoints (only they are
+    read); runs older than ``generator.json`` are described by their
+    ``config.json``;
+  * one ``.npz`` file (:func:`export` / :func:`load_file`): what
+    dusty_jax/pretrained ships.
+:func:`load` (public as ``dusty_jax.load_checkpoint``) also takes the authors'
+``.pth`` checkpoints (authors.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct, traverse_util
+
+from dusty_jax import checkpoint, configs
+from dusty_jax.data import arrays
+from dusty_jax.models import ModelSettings
+from dusty_jax.sensor import SensorSpec, from_config as sensor_from_config
+
+SPEC_FILE = 'generator.json'
+FORMAT = 1
+
+
+class GeneratorParams(struct.PyTreeNode):
+  """A trained generator as one pytree: what sample() and invert() take."""
+  variables: Any
+  angles: Any  # (2, H, W) per-pixel elevation, azimuth for back-projection.
+  sensor: SensorSpec = struct.field(pytree_node=False, default=None)
+  settings: ModelSettings = struct.field(pytree_node=False, default=ModelSettings())
+  tolerance: float = struct.field(pytree_node=False, default=0.0)
+
+  # The settings most callers read, by name.
+  model = property(lambda self: self.settings.model)
+  latent_dim = property(lambda self: self.settings.latent_dim)
+  tau = property(lambda self: self.settings.tau)
+
+  def module(self, impl: str | None = None):
+    """The generator network (Flax module) these variables belong to."""
+    return self.settings.generator(self.sensor, impl)
+
+
+# ----------------------------------------------------------------------------
+# The description saved beside the variables: sensor, settings, tolerance.
+# ----------------------------------------------------------------------------
+
+
+def sensor_to_dict(sensor: SensorSpec) -> dict:
+  d = dataclasses.asdict(sensor)
+  return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple)) else v)
+          for k, v in d.items()}
+
+
+def sensor_from_dict(d: dict) -> SensorSpec:
+  return SensorSpec(**dict(d, elevation_deg=tuple(d['elevation_deg'])))
+
+
+def describe(sensor: SensorSpec, settings: ModelSettings, tolerance: float = 0.0) -> dict:
+  return {'format': FORMAT, 'sensor': sensor_to_dict(sensor),
+          'settings': dataclasses.asdict(settings), 'tolerance': float(tolerance)}
+
+
+def _from_description(d: dict, source: str):
+  try:
+    return (sensor_from_dict(d['sensor']), ModelSettings(**d['settings']),
+            float(d.get('tolerance', 0.0)))
+  except (KeyError, TypeError, ValueError) as e:
+    raise ValueError(f'{source}: not a generator description ({e})') from None
+
+
+def save_spec(workdir: str, sensor: SensorSpec, settings: ModelSettings, angles,
+              tolerance: float = 0.0):
+  """Writes ``generator.json`` and ``angles.npy`` into a run (atomically)."""
+  angles = np.asarray(angles, np.float32)
+  if angles.shape != (2,) + tuple(sensor.shape):
+    raise ValueError(f'angles of shape {angles.shape} do not fit sensor '
+                     f'{sensor.name!r} {sensor.shape}')
+  os.makedirs(workdir, exist_ok=True)
+  arrays.save_array(os.path.join(workdir, arrays.ANGLES), angles)
+  tmp = os.path.join(workdir, SPEC_FILE + '.tmp')
+  with open(tmp, 'w') as f:
+    json.dump(describe(sensor, settings, tolerance), f, indent=2)
+  os.replace(tmp, os.path.join(workdir, SPEC_FILE))
+
+
+def set_tolerance(workdir: str, tolerance: float):
+  """Records a tuned drop tolerance (the baseline's beta) in a run."""
+  sensor, settings, _ = read_spec(workdir)
+  path = os.path.join(workdir, SPEC_FILE)
+  with open(path) as f:
+    d = json.load(f)
+  d['tolerance'] = float(tolerance)
+  with open(path + '.tmp', 'w') as f:
+    json.dump(d, f, indent=2)
+  os.replace(path + '.tmp', path)
+
+
+def read_spec(workdir: str):
+  """(sensor, settings, tolerance) of a run directory.
+
+  Runs written before ``generator.json`` existed are described by their
+  ``config.json`` (fields they predate take their legacy values).
+  """
+  path = os.path.join(workdir, SPEC_FILE)
+  if os.path.isfile(path):
+    with open(path) as f:
+      try:
+        d = json.load(f)
+      except json.JSONDecodeError as e:
+        raise ValueError(f'{path}: not valid JSON ({e})') from None
+    return _from_description(d, path)
+  config = configs.load(workdir)
+  return (sensor_from_config(config.sensor), ModelSettings.from_config(config),
+          float(config.get('tolerance', 0.0)))
+
+
+def read_angles(workdir: str, sensor: SensorSpec, angles=None) -> np.ndarray:
+  """The run's angle table; ``angles``: a .npy path or 'nominal' instead."""
+  if isinstance(angles, str) and angles == 'nominal':
+    return sensor.nominal_angles()
+  if angles is not None:
+    from dusty_jax import authors
+    return authors.read_angles(angles, sensor)
+  if not os.path.isfile(os.path.join(workdir, arrays.ANGLES)):
+    raise FileNotFoundError(
+        f'{workdir}: no {arrays.ANGLES} (a run from before runs kept their angle '
+        "table); pass angles= the dataset's angles.npy, or angles='nominal' for the "
+        "sensor's nominal angles")
+  return arrays.load_angles(workdir, sensor)
+
+
+# ----------------------------------------------------------------------------
+# Loading.
+# ----------------------------------------------------------------------------
+
+
+def load(path: str, step: int | None = None, ema: bool = True,
+         config: str | None = None, angles: str | None = None, log=print):
+  """(GeneratorParams, config) of a training run: the EMA generator by default.
+
+  ``path``: a run directory (the newest checkpoint that restores, or
+  ``step``), or one of the authors' ``.pth`` checkpoints with ``config`` their
+  yaml (default: found beside it). ``angles``: a (2, H, W) ``.npy`` table (or
+  the authors' angles.pt, or 'nominal') for runs or files without one.
+  Nothing is written, simulated or read from a dataset.
+  """
+  if os.path.isfile(path):
+    if step is not None:
+      raise ValueError(f'{path}: step= is for a run directory, not a single file')
+    if path.endswith('.npz'):
+      return load_file(path), None
+    from dusty_jax import authors
+    return authors.load(path, config=config, ema=ema, angles=angles)
+  if config is not None:
+    raise ValueError(f"{path}: config= is for an authors' .pth; a run directory "
+                     'holds its own')
+  run_config = configs.load(path)
+  sensor, settings, tolerance = read_spec(path)
+  table = read_angles(path, sensor, angles)
+  name = 'ema_params' if ema else 'g_params'
+  variables, _ = checkpoint.restore_item(os.path.join(path, checkpoint.DIRECTORY),
+                                         name, step, log=log)
+  params = GeneratorParams(variables=variables, angles=jnp.asarray(table, jnp.float32),
+                           sensor=sensor, settings=settings, tolerance=tolerance)
+  check(params, path)
+  return params, run_config
+
+
+def check(params: GeneratorParams, source: str = 'generator'):
+  """Refuses variables that do not fit the described network."""
+  want = jax.eval_shape(params.module().init, jax.random.key(0),
+                        jnp.zeros((1, params.latent_dim)))
+  shape = lambda t: jax.tree.map(lambda v: tuple(np.shape(v)), t)
+  if shape(want) != shape(params.variables):
+    raise ValueError(f'{source}: the saved generator variables do not fit the '
+                     f'described network ({params.settings}, sensor '
+                     f'{params.sensor.shape})')
+
+
+def export(params: GeneratorParams, path: str, source: str = '') -> str:
+  """Writes a generator as one ``.npz`` (variables, angles, description)."""
+  meta = dict(describe(params.sensor, params.settings, params.tolerance), source=source)
+  flat = traverse_util.flatten_dict(params.variables, sep='/')
+  arrs = {f'variables/{k}': np.asarray(v, np.float32) for k, v in flat.items()}
+  np.savez_compressed(path, meta=np.asarray(json.dumps(meta)),
+                      angles=np.asarray(params.angles, np.float32), **arrs)
+  return path
+
+
+def load_file(path: str) -> GeneratorParams:
+  """A generator written by :func:`export`."""
+  with np.load(path, allow_pickle=False) as f:
+    meta = json.loads(str(f['meta']))
+    flat = {k[len('variables/'):]: jnp.asarray(f[k]) for k in f.files
+            if k.startswith('variables/')}
+    table = jnp.asarray(f['angles'])
+  if 'settings' not in meta:  # files written before format 1: flat fields.
+    meta = {'sensor': meta['sensor'], 'tolerance': meta.get('tolerance', 0.0),
+            'settings': {k: meta[k] for k in ('model', 'latent_dim', 'ch_base',
+                                              'ch_max', 'tau', 'eqlr') if k in meta}}
+  sensor, settings, tolerance = _from_description(meta, path)
+  params = GeneratorParams(variables=traverse_util.unflatten_dict(flat, sep='/'),
+                           angles=table, sensor=sensor, settings=settings,
+                           tolerance=tolerance)
+  check(params, path)
+  return params
