@@ -36,18 +36,32 @@ NOISE_RAMP = 0.75
 
 
 def lr_schedule(num_steps: int, lr: float = LR):
-  def f(step):
-    t = step / num_steps
-    g = jnp.minimum(1.0, (1.0 - t) / RAMP_DOWN)
-    g = 0.5 - 0.5 * jnp.cos(g * jnp.pi)
-    return lr * g * jnp.minimum(1.0, t / RAMP_UP)
-  return f
+  """StyleGAN2's projector schedule: linear ramp-up, flat, cosine ramp-down.
+
+  Over progress t = step / num_steps: lr * min(1, t / RAMP_UP) times
+  0.5 - 0.5 cos(pi min(1, (1 - t) / RAMP_DOWN)). The boundaries may fall
+  between steps; the pieces meet at lr, so that is harmless.
+  """
+  up = RAMP_UP * num_steps
+  down = RAMP_DOWN * num_steps
+  return optax.join_schedules(
+      [optax.linear_schedule(0.0, lr, up), optax.constant_schedule(lr),
+       optax.cosine_decay_schedule(lr, down)],
+      boundaries=[up, num_steps - down])
 
 
+@functools.partial(jnp.vectorize, signature='(d)->(d)')
 def project(z):
-  """Onto the sphere of radius sqrt(d)."""
-  d = z.shape[-1]
-  return z * jnp.sqrt(d) / jnp.maximum(jnp.linalg.norm(z, axis=-1, keepdims=True), 1e-12)
+  """Onto the sphere of radius sqrt(d), along the last axis.
+
+  z is first divided by its largest magnitude (the projection does not
+  change), so a norm whose square would underflow float32 still gives a
+  point on the sphere. z = 0, whose nearest point on the sphere could be
+  any, goes to the all-ones point, whose norm is sqrt(d).
+  """
+  big = jnp.max(jnp.abs(z))
+  z = jnp.where(big > 0, z / jnp.where(big > 0, big, 1.0), 1.0)
+  return optax.projections.projection_l2_sphere(z, jnp.sqrt(z.shape[-1]))
 
 
 def target_mask(scan, mask=None):

@@ -207,3 +207,73 @@ def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
   (tmp_path / 'a.npy').unlink()
   with pytest.raises(ValueError, match='none of 2 input files'):
     scan_files.read_scans(str(tmp_path), tiny, log=logs.append)
+
+
+# The schedule and the projection before they were optax's, kept as the
+# independent reference (StyleGAN2's projector, as the authors use it).
+def _reference_lr(step, num_steps, lr=inversion.LR):
+  t = step / num_steps
+  g = np.minimum(1.0, (1.0 - t) / inversion.RAMP_DOWN)
+  g = 0.5 - 0.5 * np.cos(g * np.pi)
+  return lr * g * np.minimum(1.0, t / inversion.RAMP_UP)
+
+
+def _reference_project(z):
+  d = z.shape[-1]
+  return z * np.sqrt(d) / np.maximum(np.linalg.norm(z, axis=-1, keepdims=True), 1e-12)
+
+
+@pytest.mark.parametrize('num_steps', [1, 2, 7, 20, 30, 101, 1000])
+def test_lr_schedule_matches_stylegan2_projector(num_steps):
+  steps = np.arange(num_steps + 1)
+  want = _reference_lr(steps.astype(np.float64), num_steps)
+  # As optax.adam calls it: an int32 count, under jit.
+  schedule = jax.jit(inversion.lr_schedule(num_steps))
+  got = np.array([schedule(jnp.int32(s)) for s in steps])
+  np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7 * inversion.LR)
+  assert got[0] == 0 and abs(got[-1]) <= 1e-7 * inversion.LR
+  # A traced lr (invert() jits it) scales the whole schedule.
+  scaled = jax.jit(lambda s, lr: inversion.lr_schedule(num_steps, lr)(s))
+  np.testing.assert_allclose(scaled(jnp.int32(num_steps // 2), 0.5),
+                             _reference_lr(num_steps // 2, num_steps, 0.5), rtol=1e-6)
+
+
+def test_project_matches_reference_and_lands_on_sphere():
+  rng = np.random.default_rng(0)
+  for d in (1, 3, 512):
+    z = rng.normal(scale=rng.uniform(0.01, 100), size=(6, d)).astype(np.float32)
+    got = np.asarray(inversion.project(jnp.asarray(z)))
+    np.testing.assert_allclose(got, _reference_project(z.astype(np.float64)),
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=-1), np.sqrt(d), rtol=1e-6)
+    # One vector alone is projected as inside a batch.
+    np.testing.assert_allclose(np.asarray(inversion.project(jnp.asarray(z[2]))), got[2],
+                               rtol=1e-6)
+  # Points already on the sphere stay put.
+  np.testing.assert_allclose(np.asarray(inversion.project(jnp.asarray(got))), got,
+                             rtol=1e-6, atol=1e-6)
+
+
+def test_project_zero_and_tiny_vectors():
+  d = 8
+  # Zero: no direction to keep; a finite point on the sphere (all ones).
+  zero = np.asarray(inversion.project(jnp.zeros(d)))
+  np.testing.assert_array_equal(zero, np.ones(d, np.float32))
+  # Norms whose square underflows float32 (1e-30^2, 1e-37^2, near the
+  # smallest normal number) or overflows it (1e30^2) keep their direction and
+  # land on the sphere. (XLA flushes subnormals to zero: those are zero here.)
+  direction = np.array([3, -4, 0, 1, 0, 0, 2, -1], np.float64)
+  for scale in (1e-30, 1e-37, 1e30):
+    z = jnp.asarray(direction * scale / np.abs(direction).max(), jnp.float32)
+    got = np.asarray(inversion.project(z))
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(np.linalg.norm(got), np.sqrt(d), rtol=1e-6)
+    # The exact projection, in float64 (the old formula's 1e-12 floor on the
+    # norm left such z off the sphere, and float32 squares underflow).
+    z64 = np.asarray(z, np.float64)
+    np.testing.assert_allclose(got, z64 * np.sqrt(d) / np.linalg.norm(z64),
+                               rtol=1e-6, atol=1e-6)
+  # Gradients through the projection (the search never takes them, a user may)
+  # stay finite at zero too.
+  grad = jax.grad(lambda z: inversion.project(z).sum())(jnp.zeros(d))
+  assert np.isfinite(np.asarray(grad)).all()

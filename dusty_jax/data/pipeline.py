@@ -66,6 +66,8 @@ class Batches:
 
   def __call__(self, step: int) -> np.ndarray:
     rng = np.random.default_rng((self.seed, step))
-    idx = rng.integers(0, len(self.depth), self.global_batch)
-    idx = np.sort(idx[self.offset:self.offset + self.local])
+    # Sorted (contiguous reads from a memory-mapped file) before slicing, so
+    # the process slices, in process order, are the single-process batch.
+    idx = np.sort(rng.integers(0, len(self.depth), self.global_batch))
+    idx = idx[self.offset:self.offset + self.local]
     return np.asarray(codec.encode(self.depth[idx], self.sensor))
