@@ -14,7 +14,7 @@ import statistics
 import numpy as np
 
 import common
-from dusty_jax.data import synthetic
+from dusty_jax.data import scene, simulated_lidar, synthetic
 from dusty_jax.sensor import get_sensor
 
 
@@ -27,16 +27,16 @@ def main():
   a = p.parse_args()
   common.print_banner()
   sensor = get_sensor('kitti')
-  dirs = synthetic.ray_directions(sensor).reshape(-1, 3)
+  dirs = simulated_lidar.ray_directions(sensor).reshape(-1, 3)
   build, cast, total = [], [], []
   for i in range(a.num):
-    dt, (mesh, _, _) = common.seconds(lambda: synthetic.build_scene(i))
+    dt, (mesh, _, _) = common.seconds(lambda: scene.build_scene(i))
     build.append(dt)
-    cast.append(common.seconds(lambda: synthetic.intersector(mesh).intersects_id(
+    cast.append(common.seconds(lambda: simulated_lidar.intersector(mesh).intersects_id(
         np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True))[0])
-    total.append(common.seconds(lambda: synthetic.render_scan(i, sensor))[0])
+    total.append(common.seconds(lambda: simulated_lidar.render_scan(i, sensor))[0])
   rays = len(dirs) / statistics.median(cast)
-  print(f'embree: {synthetic.has_embree()}; one core, median of {a.num} scans: '
+  print(f'embree: {simulated_lidar.has_embree()}; one core, median of {a.num} scans: '
         f'build {statistics.median(build) * 1e3:.1f} ms, cast {statistics.median(cast) * 1e3:.1f} ms '
         f'({rays / 1e6:.2f} M rays/s incl. BVH build), whole scan '
         f'{statistics.median(total) * 1e3:.1f} ms')
@@ -46,7 +46,7 @@ def main():
   print(f'simulate, {a.workers} workers: {rate:.1f} scans/s -> 10,000 scans in '
         f'{10000 / rate / 60:.1f} min')
   common.write_json(a.out, dict(
-      embree=synthetic.has_embree(), build_ms=statistics.median(build) * 1e3,
+      embree=simulated_lidar.has_embree(), build_ms=statistics.median(build) * 1e3,
       cast_ms=statistics.median(cast) * 1e3, scan_ms=statistics.median(total) * 1e3,
       workers=a.workers, scans_per_s=rate, minutes_per_10k=10000 / rate / 60,
       cpus=os.cpu_count()))

@@ -113,13 +113,13 @@ def test_corruptions(tiny):
 
 
 def test_cli_on_files_and_split(smoke_run, tmp_path):
-  from dusty_jax.data import kitti, synthetic
+  from dusty_jax.data import kitti, simulated_lidar
   config, workdir, _ = smoke_run
   params, _ = dusty_jax.load_checkpoint(workdir)
   inp = tmp_path / 'in'
   inp.mkdir()
-  scan = synthetic.render_scan(1, params.sensor)
-  kitti.write_bin(str(inp / 'a.bin'), synthetic.to_sensor_order(scan.depth, params.sensor))
+  scan = simulated_lidar.render_scan(1, params.sensor)
+  kitti.write_bin(str(inp / 'a.bin'), simulated_lidar.to_sensor_order(scan.depth, params.sensor))
   np.save(inp / 'b.npy', np.stack([scan.depth, scan.depth]))
   env = dict(os.environ)
   env.pop('XLA_FLAGS', None)

@@ -42,10 +42,10 @@ COMPLETION_ABS_REL_BOUND = 0.8
 def test_trained_dusty1_fits_and_completes_a_held_out_simulated_scan():
   """The shipped DUSty-I, trained on simulated scenes, inverts a scene it
   never saw (scene seed outside every split of the study's data)."""
-  from dusty_jax.data import synthetic
+  from dusty_jax.data import simulated_lidar
   from dusty_jax.metrics import ground_truth
   params = dusty_jax.load_pretrained('sim-dusty1')
-  s = synthetic.render_scan(7_000_001, params.sensor)
+  s = simulated_lidar.render_scan(7_000_001, params.sensor)
   target = codec.encode(s.depth, params.sensor)
   rec = dusty_jax.invert(params, target, num_steps=300, key=jax.random.key(0))
   g = ground_truth.disentanglement(params.sensor, rec['inv_depth'][None],

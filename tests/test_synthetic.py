@@ -6,21 +6,21 @@ import numpy as np
 import pytest
 
 from dusty_jax import prepare
-from dusty_jax.data import arrays, kitti as kitti_io, synthetic
+from dusty_jax.data import arrays, kitti as kitti_io, scene, simulated_lidar, synthetic
 
 
 @pytest.fixture(scope='module')
 def scans():
   from dusty_jax.sensor import get_sensor
   sensor = get_sensor('kitti')
-  return sensor, [synthetic.render_scan(s, sensor, kind=k)
-                  for s, k in enumerate(synthetic.SCENE_KINDS * 2)]
+  return sensor, [simulated_lidar.render_scan(s, sensor, kind=k)
+                  for s, k in enumerate(scene.SCENE_KINDS * 2)]
 
 
 def test_same_seed_same_scan(kitti):
-  a = synthetic.render_scan(7, kitti)
-  b = synthetic.render_scan(7, kitti)
-  c = synthetic.render_scan(8, kitti)
+  a = simulated_lidar.render_scan(7, kitti)
+  b = simulated_lidar.render_scan(7, kitti)
+  c = simulated_lidar.render_scan(8, kitti)
   np.testing.assert_array_equal(a.depth, b.depth)
   np.testing.assert_array_equal(a.drop_prob, b.drop_prob)
   assert not np.array_equal(a.depth, c.depth)
@@ -39,8 +39,8 @@ def test_glass_drops_far_more_than_asphalt(scans):
   mat = np.concatenate([s.material.ravel() for s in ss])
   p = np.concatenate([s.drop_prob.ravel() for s in ss])
   obs = np.concatenate([s.depth.ravel() for s in ss])
-  glass, asphalt = (mat == synthetic.MATERIAL_IDS['glass'],
-                    mat == synthetic.MATERIAL_IDS['asphalt'])
+  glass, asphalt = (mat == scene.MATERIAL_IDS['glass'],
+                    mat == scene.MATERIAL_IDS['asphalt'])
   assert p[glass].mean() > 0.8 > 0.4 > p[asphalt].mean()
   assert np.mean(obs[glass] == 0) > 3 * np.mean(obs[asphalt] == 0)
 
@@ -51,8 +51,8 @@ def test_observed_matches_complete_within_noise(scans):
     valid = s.depth > 0
     assert (s.complete[valid] > 0).all()
     err = s.depth[valid] - s.complete[valid]
-    assert abs(err.mean()) < 3 * synthetic.RANGE_NOISE_M / np.sqrt(valid.sum()) + 1e-3
-    assert np.abs(err).max() < 6 * synthetic.RANGE_NOISE_M
+    assert abs(err.mean()) < 3 * simulated_lidar.RANGE_NOISE_M / np.sqrt(valid.sum()) + 1e-3
+    assert np.abs(err).max() < 6 * simulated_lidar.RANGE_NOISE_M
     # Drops only where a drop is possible; never a return where p = 1.
     assert not (valid & (s.drop_prob >= 1)).any()
     assert ((s.drop_prob >= 0) & (s.drop_prob <= 1)).all()
@@ -61,17 +61,17 @@ def test_observed_matches_complete_within_noise(scans):
 def test_sky_and_ego_always_dropped(scans):
   _, ss = scans
   for s in ss:
-    certain = (s.material < 0) | (s.material == synthetic.MATERIAL_IDS['ego'])
+    certain = (s.material < 0) | (s.material == scene.MATERIAL_IDS['ego'])
     assert (s.drop_prob[certain] == 1).all() and (s.depth[certain] == 0).all()
     assert (s.complete[certain] == 0).all()
-  assert any((s.material == synthetic.MATERIAL_IDS['ego']).any() for s in ss)
+  assert any((s.material == scene.MATERIAL_IDS['ego']).any() for s in ss)
 
 
 def test_bin_unfolds_to_rendered_image_exactly(scans, tmp_path):
   sensor, ss = scans
   for i, s in enumerate(ss):
     path = str(tmp_path / f'{i:06d}.bin')
-    kitti_io.write_bin(path, synthetic.to_sensor_order(s.depth, sensor))
+    kitti_io.write_bin(path, simulated_lidar.to_sensor_order(s.depth, sensor))
     image, report = kitti_io.load_scan(path, sensor)
     np.testing.assert_allclose(image, s.depth, rtol=2e-6)
     assert (image > 0).sum() == (s.depth > 0).sum()
@@ -101,14 +101,14 @@ def test_write_dataset_through_prepare(tiny, tmp_path):
 
 
 def test_fallback_without_embree_agrees(tiny):
-  mesh, _, _ = synthetic.build_scene(1, 'rural')
-  d = synthetic.ray_directions(tiny).reshape(-1, 3)[::7]
+  mesh, _, _ = scene.build_scene(1, 'rural')
+  d = simulated_lidar.ray_directions(tiny).reshape(-1, 3)[::7]
   o = np.zeros_like(d)
-  if not synthetic.has_embree():
+  if not simulated_lidar.has_embree():
     pytest.skip('embreex not installed: only the fallback is available')
-  a = synthetic.intersector(mesh, True).intersects_id(
+  a = simulated_lidar.intersector(mesh, True).intersects_id(
       o, d, multiple_hits=False, return_locations=True)
-  b = synthetic.intersector(mesh, False).intersects_id(
+  b = simulated_lidar.intersector(mesh, False).intersects_id(
       o, d, multiple_hits=False, return_locations=True)
   da, db = np.full(len(d), np.inf), np.full(len(d), np.inf)
   da[a[1]] = np.linalg.norm(a[2], axis=1)

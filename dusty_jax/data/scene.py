@@ -1,0 +1,231 @@
+"""Procedural driving scenes for the simulated LiDAR: materials and meshes.
+
+A scene is a triangle mesh (trimesh) built from a seed, with a material per
+face: ground and road with lane markings, sidewalks, buildings with glass
+windows, walls, parked and moving cars with glass cabins, poles and trees, in
+urban, residential and rural variants, optionally with a cross street, and
+the ego vehicle's roof rack. Materials carry what the drop model
+(simulated_lidar.py) needs: reflectivity, glass, specular paint, foliage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import trimesh
+
+@dataclasses.dataclass(frozen=True)
+class Material:
+  reflectivity: float
+  glass: bool = False
+  specular: float = 0.0
+  foliage: bool = False
+  ego: bool = False
+
+
+MATERIALS = {
+    'ground': Material(0.25),
+    'asphalt': Material(0.12),
+    'marking': Material(0.6),
+    'sidewalk': Material(0.3),
+    'wall': Material(0.45),
+    'glass': Material(0.05, glass=True),
+    'paint': Material(0.35, specular=0.9),
+    'metal': Material(0.5, specular=0.5),
+    'bark': Material(0.3),
+    'foliage': Material(0.4, foliage=True),
+    'ego': Material(0.0, ego=True),
+}
+MATERIAL_IDS = {name: i for i, name in enumerate(MATERIALS)}
+REFLECTIVITY = np.array([m.reflectivity for m in MATERIALS.values()])
+GLASS = np.array([m.glass for m in MATERIALS.values()])
+SPECULAR = np.array([m.specular for m in MATERIALS.values()])
+FOLIAGE = np.array([m.foliage for m in MATERIALS.values()])
+EGO = np.array([m.ego for m in MATERIALS.values()])
+
+SCENE_KINDS = ('urban', 'residential', 'rural')
+
+# --- Mesh templates ----------------------------------------------------------
+_BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+_CYL = trimesh.creation.cylinder(radius=0.5, height=1.0, sections=10)
+_SPHERE = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+
+
+class SceneBuilder:
+  """Accumulates transformed template meshes with a material per face."""
+
+  def __init__(self):
+    self.vertices, self.faces, self.material = [], [], []
+    self.n = 0
+
+  def add(self, template, size, center, material: str, yaw: float = 0.0):
+    v = template.vertices * np.asarray(size, np.float64)
+    if yaw:
+      c, s = np.cos(yaw), np.sin(yaw)
+      v = v @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+    self.vertices.append(v + np.asarray(center, np.float64))
+    self.faces.append(template.faces + self.n)
+    self.material.append(np.full(len(template.faces), MATERIAL_IDS[material]))
+    self.n += len(template.vertices)
+
+  def box(self, lo, hi, material, yaw=0.0):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    self.add(_BOX, hi - lo, (lo + hi) / 2, material, yaw)
+
+  def boxes(self, lo, hi, material):
+    """Many axis-aligned boxes at once: lo, hi of shape (n, 3)."""
+    lo, hi = np.asarray(lo, float).reshape(-1, 3), np.asarray(hi, float).reshape(-1, 3)
+    k = len(lo)
+    if not k:
+      return
+    nv = len(_BOX.vertices)
+    v = _BOX.vertices[None] * (hi - lo)[:, None] + ((lo + hi) / 2)[:, None]
+    f = _BOX.faces[None] + (self.n + nv * np.arange(k))[:, None, None]
+    self.vertices.append(v.reshape(-1, 3))
+    self.faces.append(f.reshape(-1, 3))
+    self.material.append(np.full(k * len(_BOX.faces), MATERIAL_IDS[material]))
+    self.n += k * nv
+
+  def mesh(self):
+    mesh = trimesh.Trimesh(np.concatenate(self.vertices),
+                           np.concatenate(self.faces), process=False)
+    return mesh, np.concatenate(self.material)
+
+
+def _car(b: SceneBuilder, x, y, yaw, ground, rng):
+  length, width = rng.uniform(3.8, 4.9), rng.uniform(1.7, 1.95)
+  body_h = rng.uniform(0.75, 0.95)
+  c, s = np.cos(yaw), np.sin(yaw)
+  b.add(_BOX, (length, width, body_h), (x, y, ground + 0.3 + body_h / 2),
+        'paint', yaw)
+  cab_len = length * rng.uniform(0.45, 0.6)
+  b.add(_BOX, (cab_len, width * 0.9, 0.55),
+        (x - 0.1 * length * c, y - 0.1 * length * s,
+         ground + 0.3 + body_h + 0.27), 'glass', yaw)
+  for dx in (-0.33, 0.33):  # wheels (dark rubber: low reflectivity paint)
+    for dy in (-0.45, 0.45):
+      b.add(_CYL, (0.65, 0.25, 0.65),
+            (x + dx * length * c - dy * width * s,
+             y + dx * length * s + dy * width * c, ground + 0.33), 'asphalt')
+
+
+def _tree(b: SceneBuilder, x, y, ground, rng):
+  h = rng.uniform(2.0, 4.0)
+  r = rng.uniform(1.5, 3.0)
+  b.add(_CYL, (0.35, 0.35, h), (x, y, ground + h / 2), 'bark')
+  b.add(_SPHERE, (2 * r, 2 * r, 1.6 * r), (x, y, ground + h + 0.6 * r), 'foliage')
+
+
+def _building(b: SceneBuilder, x0, x1, y_face, side, depth, height, ground, rng,
+              windows=True):
+  """A block from x0 to x1 whose facade is at y_face, extending away."""
+  y_far = y_face + side * depth
+  b.box((x0, min(y_face, y_far), ground), (x1, max(y_face, y_far), ground + height),
+        'wall')
+  if not windows:
+    return
+  xs = np.arange(x0 + 1.0, x1 - 1.5, rng.uniform(2.2, 3.5))
+  zs = ground + 0.9 + 3.0 * np.arange(int(height // 3.0))
+  wx, wz = [a.ravel() for a in np.meshgrid(xs, zs)]
+  keep = rng.uniform(size=wx.shape) < 0.85
+  wx, wz = wx[keep], wz[keep]
+  yy = np.full_like(wx, y_face - side * 0.02)
+  b.boxes(np.stack([wx, yy - 0.03, wz], 1),
+          np.stack([wx + 1.3, yy + 0.03, wz + 1.5], 1), 'glass')
+
+
+def build_scene(seed: int, kind: str | None = None, mount_height: float = 1.73,
+                cross_street: bool | None = None):
+  """(mesh, face_material, info) of one procedural scene around the origin.
+
+  The sensor is at the origin; the ground at z = -mount_height; the road
+  runs along x. ``kind`` is urban, residential or rural (random if None).
+  """
+  rng = np.random.default_rng(seed)
+  kind = kind or SCENE_KINDS[rng.integers(len(SCENE_KINDS))]
+  if kind not in SCENE_KINDS:
+    raise ValueError(f'unknown scene kind {kind!r}; known: {SCENE_KINDS}')
+  g = -mount_height
+  extent = 140.0
+  b = SceneBuilder()
+  lanes = 2 if kind == 'rural' else int(rng.integers(2, 5))
+  lane_w = 3.5
+  half = lanes * lane_w / 2
+  ego_y = -half + lane_w / 2 + lane_w * int(rng.integers(lanes))
+  # Ground, road, markings (road frame: centre line at y = 0, ego offset).
+  b.box((-extent, -extent, g - 0.5), (extent, extent, g - 0.02), 'ground')
+  b.box((-extent, -half - ego_y, g - 0.1), (extent, half - ego_y, g), 'asphalt')
+  for k in range(1, lanes):
+    y = -half + k * lane_w - ego_y
+    xs = np.arange(-extent, extent, 9.0)
+    b.boxes(np.stack([xs, np.full_like(xs, y - 0.07), np.full_like(xs, g)], 1),
+            np.stack([xs + 3.0, np.full_like(xs, y + 0.07),
+                      np.full_like(xs, g + 0.005)], 1), 'marking')
+  cross = cross_street if cross_street is not None else rng.uniform() < 0.35
+  cross_x = rng.uniform(12, 45) * rng.choice([-1, 1])
+  cross_half = lanes * lane_w / 2
+  if cross:
+    b.box((cross_x - cross_half, -extent, g - 0.1),
+          (cross_x + cross_half, extent, g), 'asphalt')
+
+  def on_cross(x0, x1):
+    return cross and x1 > cross_x - cross_half - 2 and x0 < cross_x + cross_half + 2
+
+  side_w = 0 if kind == 'rural' else rng.uniform(2.0, 4.0)
+  for side in (-1, 1):
+    edge = side * half - ego_y
+    if side_w:
+      for x0 in np.arange(-extent, extent, 20.0):
+        if not on_cross(x0, x0 + 20):
+          y0, y1 = sorted((edge, edge + side * side_w))
+          b.box((x0, y0, g), (x0 + 20, y1, g + 0.15), 'sidewalk')
+    facade = edge + side * (side_w + rng.uniform(0.5, 4.0))
+    x = -extent
+    while x < extent:
+      if kind == 'urban':
+        length, height = rng.uniform(15, 40), rng.uniform(8, 30)
+      elif kind == 'residential':
+        length, height = rng.uniform(8, 15), rng.uniform(4, 8)
+      else:
+        length, height = rng.uniform(20, 60), rng.uniform(0.8, 2.0)
+      gap = rng.uniform(0, 2) if kind == 'urban' else rng.uniform(3, 12)
+      if not on_cross(x, x + length) and rng.uniform() < (0.95 if kind != 'rural' else 0.5):
+        if kind == 'rural':  # low walls and fences
+          y0 = facade + side * rng.uniform(0, 6)
+          b.box((x, y0 - 0.15, g), (x + length, y0 + 0.15, g + height), 'wall')
+        else:
+          setback = 0 if kind == 'urban' else rng.uniform(2, 8)
+          _building(b, x, x + length, facade + side * setback, side,
+                    rng.uniform(8, 15), height, g, rng)
+      x += length + gap
+    # Poles, trees, parked cars along this side.
+    for x in np.arange(-extent + rng.uniform(0, 15), extent, rng.uniform(15, 30)):
+      if not on_cross(x, x):
+        y = edge + side * max(side_w - 0.4, 0.6)
+        b.add(_CYL, (0.2, 0.2, 7.0), (x, y, g + 3.5), 'metal')
+    n_trees = {'urban': 6, 'residential': 18, 'rural': 30}[kind]
+    for _ in range(n_trees):
+      x = rng.uniform(-extent, extent)
+      if not on_cross(x, x):
+        y = edge + side * (side_w + rng.uniform(1.0, 20.0 if kind == 'rural' else 3.0))
+        _tree(b, x, y, g, rng)
+    n_parked = {'urban': 10, 'residential': 8, 'rural': 1}[kind]
+    for _ in range(n_parked):
+      x = rng.uniform(-70, 70)
+      if abs(x) > 4 and not on_cross(x, x):
+        _car(b, x, edge - side * 1.1, rng.uniform(-0.05, 0.05), g, rng)
+  # Moving cars in the lanes (not on the ego car).
+  for _ in range({'urban': 8, 'residential': 4, 'rural': 3}[kind]):
+    lane = int(rng.integers(lanes))
+    y = -half + lane_w / 2 + lane * lane_w - ego_y
+    x = rng.uniform(-60, 60)
+    if abs(y) < 1 and abs(x) < 8:
+      continue
+    _car(b, x, y, np.pi * (lane < lanes / 2) + rng.uniform(-0.03, 0.03), g, rng)
+  # The ego vehicle: its body lies inside the sensor's blind cone, but the
+  # roof rack behind the sensor shadows a rear sector of the lowest beams.
+  b.box((-1.2, -0.3, -0.6), (-0.5, 0.3, -0.35), 'ego')
+  mesh, material = b.mesh()
+  return mesh, material, {'kind': kind, 'cross_street': bool(cross),
+                          'lanes': lanes}
