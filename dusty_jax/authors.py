@@ -341,7 +341,8 @@ def _resize_bilinear(a: np.ndarray, shape) -> np.ndarray:
 
 def load(path: str, config: str | None = None, ema: bool = True,
          angles: str | None = None):
-  """(GeneratorParams, config) of an authors' ``.pth`` checkpoint.
+  """(generator fields, config) of an authors' ``.pth`` checkpoint
+  (``dusty_jax.load_checkpoint`` makes the GeneratorParams).
 
   Args:
     path: their checkpoint (``torch.save`` of a dict with 'G_ema' and 'G').
@@ -351,12 +352,13 @@ def load(path: str, config: str | None = None, ema: bool = True,
       default the sensor's nominal angles.
 
   Returns:
-    The generator bundle and a ConfigDict like a dusty_jax run's, with
+    A dict of GeneratorParams' fields (variables, angles, sensor,
+    settings) and a ConfigDict like a dusty_jax run's, with
     ``source_checkpoint`` and ``source_step`` added.
   """
   import jax
   import jax.numpy as jnp
-  from dusty_jax import generator, models, sensor as sensor_lib
+  from dusty_jax import models, sensor as sensor_lib
   ckpt = read_torch_checkpoint(path)
   cfg = config_from_yaml(config or find_config(path))
   key = 'G_ema' if ema else 'G'
@@ -382,9 +384,8 @@ def load(path: str, config: str | None = None, ema: bool = True,
           f'{cfg.latent_dim}, channels {cfg.ch_base}..{cfg.ch_max}, sensor '
           f'{sensor.shape}) asks for {v.shape}')
   table = sensor.nominal_angles() if angles is None else read_angles(angles, sensor)
-  params = generator.GeneratorParams(
-      variables=jax.tree.map(jnp.asarray, got), angles=jnp.asarray(table, jnp.float32),
-      sensor=sensor, settings=settings)
   cfg.source_checkpoint = os.path.abspath(path)
   cfg.source_step = int(ckpt.get('step', -1))
-  return params, cfg
+  generator = dict(variables=jax.tree.map(jnp.asarray, got),
+                   angles=jnp.asarray(table, jnp.float32), sensor=sensor, settings=settings)
+  return generator, cfg

@@ -101,14 +101,12 @@ def save_spec(workdir: str, sensor: SensorSpec, settings: ModelSettings, angles,
 
 
 def set_tolerance(workdir: str, tolerance: float):
-  """Records a tuned drop tolerance (the baseline's beta) in a run."""
+  """Records a tuned drop tolerance (the baseline's beta) in a run (a run
+  from before generator.json gets one, described by its config.json)."""
   sensor, settings, _ = read_spec(workdir)
   path = os.path.join(workdir, SPEC_FILE)
-  with open(path) as f:
-    d = json.load(f)
-  d['tolerance'] = float(tolerance)
   with open(path + '.tmp', 'w') as f:
-    json.dump(d, f, indent=2)
+    json.dump(describe(sensor, settings, tolerance), f, indent=2)
   os.replace(path + '.tmp', path)
 
 
@@ -167,7 +165,8 @@ def load(path: str, step: int | None = None, ema: bool = True,
     if path.endswith('.npz'):
       return load_file(path), None
     from dusty_jax import authors
-    return authors.load(path, config=config, ema=ema, angles=angles)
+    fields, run_config = authors.load(path, config=config, ema=ema, angles=angles)
+    return GeneratorParams(**fields), run_config
   if config is not None:
     raise ValueError(f"{path}: config= is for an authors' .pth; a run directory "
                      'holds its own')

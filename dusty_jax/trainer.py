@@ -32,7 +32,7 @@ import numpy as np
 import optax
 from jax import lax
 
-from dusty_jax import augment, codec, configs, losses, models
+from dusty_jax import augment, codec, configs, generator, losses, models
 from dusty_jax.sensor import SensorSpec
 
 AXIS = 'data'
@@ -275,7 +275,6 @@ class NonFiniteLossError(FloatingPointError):
 
 def generator_params(setup: Setup, variables, angles, tolerance=0.0):
   """A GeneratorParams of these variables (e.g. the EMA) for sampling."""
-  from dusty_jax import generator
   return generator.GeneratorParams(variables=variables, angles=jnp.asarray(angles),
                                    sensor=setup.sensor, settings=setup.settings,
                                    tolerance=tolerance)
@@ -285,7 +284,7 @@ def init_run(workdir: str, config, params) -> None:
   """Starts a run directory from given generator weights (e.g. the authors'):
   config, generator description and a step-0 checkpoint whose G and EMA
   hold ``params.variables`` and whose D and optimisers are fresh."""
-  from dusty_jax import checkpoint, generator
+  from dusty_jax import checkpoint
   setup = make_setup(config, params.sensor)
   state = init_state(setup, jax.random.key(config.seed))
   state = state.replace(g_params=params.variables, ema_params=params.variables)
@@ -336,7 +335,7 @@ def _check_resumable(workdir: str, config):
 def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   """Trains from scratch or resumes from the latest checkpoint in ``workdir``."""
   import tqdm
-  from dusty_jax import checkpoint, generator, parallel, sensor as sensor_lib, writers
+  from dusty_jax import checkpoint, parallel, sensor as sensor_lib, writers
   from dusty_jax.data import arrays, pipeline
 
   configs.validate(config)

@@ -97,6 +97,23 @@ def test_run_from_before_generator_json(smoke_run, tmp_path):
     dusty_jax.load_checkpoint(str(copy))
   nominal, _ = dusty_jax.load_checkpoint(str(copy), angles='nominal')
   np.testing.assert_array_equal(np.asarray(nominal.angles), new.sensor.nominal_angles())
+  generator.set_tolerance(str(copy), 0.01)  # gives the old run a generator.json
+  assert (copy / generator.SPEC_FILE).is_file()
+  tuned, _ = dusty_jax.load_checkpoint(str(copy), angles='nominal')
+  assert (tuned.settings, tuned.tolerance) == (new.settings, 0.01)
+
+
+def test_exported_file_loads_like_the_run(smoke_run, tmp_path):
+  _, workdir, _ = smoke_run
+  params, _ = dusty_jax.load_checkpoint(workdir)
+  path = generator.export(params, str(tmp_path / 'g.npz'), source='test')
+  back, config = dusty_jax.load_checkpoint(path)
+  assert config is None
+  assert (back.settings, back.sensor, back.tolerance) == (params.settings, params.sensor,
+                                                         params.tolerance)
+  z = jax.random.normal(jax.random.key(1), (2, params.latent_dim))
+  a, b = (dusty_jax.generate(p, z, jax.random.key(2)) for p in (params, back))
+  np.testing.assert_array_equal(np.asarray(a['scan']), np.asarray(b['scan']))
 
 
 def test_tolerance_survives_resume(smoke_run, tmp_path):

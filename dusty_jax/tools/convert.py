@@ -29,13 +29,13 @@ from dusty_jax import tools
 def convert(pth: str, workdir: str, config: str | None = None, ema: bool = True,
             angles: str | None = None, data_dir: str | None = None) -> str:
   """Writes the run directory ``workdir`` for an authors' checkpoint."""
-  from dusty_jax import authors, configs, trainer
+  from dusty_jax import configs, generator, trainer
   from dusty_jax.data import arrays
   if os.path.exists(os.path.join(workdir, configs.FILE)):
     raise FileExistsError(f'{workdir} already holds a run; choose another --workdir')
   if data_dir and not os.path.isdir(data_dir):
     raise FileNotFoundError(f'{data_dir}: no such dataset directory')
-  params, cfg = authors.load(pth, config=config, ema=ema, angles=angles)
+  params, cfg = generator.load(pth, config=config, ema=ema, angles=angles)
   if data_dir:
     cfg.data.dir = os.path.abspath(data_dir)
     if angles is None:

@@ -61,6 +61,9 @@ def run(a):
   from dusty_jax.metrics import protocol
 
   params, config = generator.load(a.workdir)
+  if config is None:
+    raise ValueError(f'{a.workdir}: evaluation needs a run directory (its config names '
+                     'the dataset), not a single generator file')
   sensor = params.sensor
   d = pipeline.dataset_dir(config, sensor, log=print)
   test = arrays.load_split(d, 'test', sensor)
@@ -71,7 +74,7 @@ def run(a):
     print(f'note: the test subset has {n} scans; evaluating {n} per set')
   tol = a.tolerance if a.tolerance is not None else params.tolerance
   if a.tune:
-    if config.model != 'baseline':
+    if params.model != 'baseline':
       raise ValueError('--tune is for the baseline; DUSty needs no tolerance')
     val = arrays.load_split(d, 'val', sensor)
     val = np.asarray(codec.encode(val[protocol.subset(len(val), a.num, a.protocol)],
@@ -93,7 +96,7 @@ def run(a):
     m = compare(gen, seed, tol)
     for k in results:
       results[k].append(m[k])
-  rows[f'{config.model}' + (f' (beta={tol:.4f})' if tol else '')] = results
+  rows[f'{params.model}' + (f' (beta={tol:.4f})' if tol else '')] = results
   if a.train_row:
     train = arrays.load_split(d, 'train', sensor)
     # The authors subsample the training split by the same rule and --num.

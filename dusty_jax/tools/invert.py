@@ -87,6 +87,9 @@ def run(a):
   if a.input:
     items = scan_files.read_scans(a.input, sensor)
   else:
+    if config is None:
+      raise ValueError(f'{a.workdir}: --split needs a run directory (its config names '
+                       'the dataset); give --input scans for a single generator file')
     d = pipeline.dataset_dir(config, sensor, log=lambda m: None)
     data = arrays.load_split(d, a.split, sensor)
     items = [(f'{a.split}_{i:05d}', data[i]) for i in range(min(a.num, len(data)))]
@@ -128,7 +131,7 @@ def run(a):
         writers.save_grid(os.path.join(a.out, f'{name}.png'), tiles)
   columns = [k for k, _, _ in reconstruction.COLUMNS]
   mean = {k: float(np.nanmean([r[k] for r in per_scan])) for k in columns}
-  label = f'{config.model}' + (f' ({a.corrupt})' if a.corrupt else '')
+  label = f'{params.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
     json.dump({**table_provenance(a, sensor, len(per_scan)), 'mean': mean,
                'per_scan': per_scan, 'corrupt': a.corrupt, 'steps': a.steps},

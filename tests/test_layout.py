@@ -1,0 +1,114 @@
+"""The arrows between dusty_jax's modules run one way (STYLE.md's house).
+
+Every import counts, the ones inside functions too: an import deferred to
+call time is still a dependency, and a cycle of them is still a cycle.
+"""
+
+import ast
+import os
+
+import pytest
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'dusty_jax')
+
+
+def _modules() -> dict:
+  """{module name: path} of every module of the package."""
+  out = {}
+  for d, _, files in os.walk(ROOT):
+    for f in files:
+      if f.endswith('.py'):
+        rel = os.path.relpath(os.path.join(d, f), os.path.dirname(ROOT))[:-3]
+        name = rel.replace(os.sep, '.')
+        out[name[:-len('.__init__')] if name.endswith('.__init__') else name] = \
+            os.path.join(d, f)
+  return out
+
+
+def _graph() -> dict:
+  """{module: set of dusty_jax modules it imports} (package __init__ files
+  re-export and are left out as targets)."""
+  modules = _modules()
+  graph = {}
+  for name, path in modules.items():
+    deps = set()
+    tree = ast.parse(open(path).read(), path)
+    for node in ast.walk(tree):
+      if isinstance(node, ast.Import):
+        deps.update(a.name for a in node.names)
+      elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+        deps.add(node.module)
+        deps.update(f'{node.module}.{a.name}' for a in node.names)
+    graph[name] = {d for d in deps if d in modules and d != name
+                   and not os.path.basename(modules[d]) == '__init__.py'}
+  return graph
+
+
+GRAPH = _graph()
+
+
+def test_the_graph_is_read():
+  assert GRAPH['dusty_jax.trainer'] >= {'dusty_jax.models', 'dusty_jax.losses',
+                                        'dusty_jax.augment', 'dusty_jax.checkpoint'}
+  assert 'dusty_jax.tools.invert' in GRAPH
+
+
+def test_no_import_cycle():
+  state = {}
+
+  def visit(node, path):
+    state[node] = 'open'
+    for dep in sorted(GRAPH[node]):
+      if state.get(dep) == 'open':
+        cycle = path[path.index(dep):] + [dep]
+        pytest.fail('import cycle: ' + ' -> '.join(cycle))
+      if dep not in state:
+        visit(dep, path + [dep])
+    state[node] = 'done'
+
+  for node in sorted(GRAPH):
+    if node not in state:
+      visit(node, [node])
+
+
+def _reach(name) -> set:
+  seen, todo = set(), [name]
+  while todo:
+    for dep in GRAPH[todo.pop()]:
+      if dep not in seen:
+        seen.add(dep)
+        todo.append(dep)
+  return seen
+
+
+@pytest.mark.parametrize('module, banned', [
+    # The one place that knows about orbax knows nothing of ours.
+    ('dusty_jax.checkpoint', 'dusty_jax.'),
+    # Loading a trained generator needs no training and no data pipeline.
+    ('dusty_jax.generator', ('dusty_jax.trainer', 'dusty_jax.losses', 'dusty_jax.augment',
+                             'dusty_jax.data.pipeline', 'dusty_jax.data.synthetic')),
+    ('dusty_jax.sampling', ('dusty_jax.trainer', 'dusty_jax.data.pipeline')),
+    ('dusty_jax.inversion', ('dusty_jax.trainer', 'dusty_jax.data.pipeline')),
+])
+def test_what_a_module_never_reaches(module, banned):
+  bad = sorted(m for m in _reach(module) if m.startswith(banned))
+  assert not bad, f'{module} reaches {bad}'
+
+
+def test_data_never_imports_the_model_and_metrics_never_training():
+  model_side = ('dusty_jax.models', 'dusty_jax.trainer', 'dusty_jax.generator',
+                'dusty_jax.sampling', 'dusty_jax.inversion', 'dusty_jax.layers')
+  training = ('dusty_jax.trainer', 'dusty_jax.train', 'dusty_jax.losses',
+              'dusty_jax.augment', 'dusty_jax.parallel', 'dusty_jax.checkpoint')
+  for name, deps in GRAPH.items():
+    if name.startswith('dusty_jax.data.'):
+      assert not {d for d in deps if d.startswith(model_side)}, name
+    if name.startswith('dusty_jax.metrics'):
+      assert not {d for d in deps if d.startswith(training)}, name
+
+
+def test_only_command_lines_import_command_lines():
+  for name, deps in GRAPH.items():
+    if name.startswith('dusty_jax.tools') or name == 'dusty_jax.train':
+      continue
+    assert not {d for d in deps if d.startswith('dusty_jax.tools') or d == 'dusty_jax.train'}, name
