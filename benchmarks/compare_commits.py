@@ -9,6 +9,13 @@ after, before, after, ...), so that load on a shared machine falls on both
 alike. Prints per round and the median over rounds of each commit's
 seconds per step (R1 on and off) and the ratio after / before; writes
 benchmarks/results/compare_commits.json.
+
+Timings on a shared machine are noisy; ``--hlo`` first answers the sharper
+question of whether the two commits compile the train step to the same
+program: it compiles a small DUSty-I step (R1 every step, and lazy R1) with
+each commit and compares XLA's optimised HLO instruction by instruction,
+names, numbers and source locations left out. Identical programs run at
+the same speed whatever the timings say.
 """
 
 import argparse
@@ -43,6 +50,36 @@ def measure(tree: str, args, out: str) -> dict:
           for r in rows}
 
 
+# Compiles a small train step with the library on PYTHONPATH and prints its
+# optimised HLO instructions, canonicalised (no names, numbers or locations).
+HLO_SNIPPET = r"""
+import re, sys, jax, numpy as np
+from dusty_jax import configs, parallel, trainer
+from dusty_jax.sensor import get_sensor
+c = configs.default()
+c.model, c.impl, c.batch_size, c.r1_every = 'dusty1', 'matmul', 4, int(sys.argv[1])
+c.latent_dim, c.ch_base, c.ch_max = 32, 8, 32
+sensor = get_sensor('kitti')
+setup = trainer.make_setup(c, sensor)
+mesh = parallel.data_mesh()
+step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+state = parallel.replicate(trainer.init_state(setup, jax.random.key(0)), mesh)
+x = parallel.shard_batch(np.zeros((4,) + sensor.shape, np.float32), mesh)
+text = step.lower(state, x, jax.random.key(1)).compile().as_text()
+for line in text.splitlines():
+  if '=' in line and '(' in line and not re.search(r'file_name_id|file_location_id', line):
+    line = re.sub(r'metadata=\{[^}]*\}|, stack_frame_id=\d+', '', line)
+    print(re.sub(r'[0-9]+', 'N', line))
+"""
+
+
+def compiled_program(tree: str, r1_every: int) -> list:
+  env = dict(os.environ, PYTHONPATH=tree, JAX_PLATFORMS='cpu')
+  out = subprocess.run([sys.executable, '-c', HLO_SNIPPET, str(r1_every)], env=env,
+                       check=True, capture_output=True, text=True).stdout
+  return [l for l in out.splitlines() if not l.startswith('N "')]
+
+
 def main():
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument('--before', required=True)
@@ -53,6 +90,8 @@ def main():
   p.add_argument('--model', default='dusty1')
   p.add_argument('--batch', type=int, default=32)
   p.add_argument('--repeats', type=int, default=5)
+  p.add_argument('--hlo', action='store_true',
+                 help='compare the compiled programs (small step) before timing')
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'compare_commits.json'))
   a = p.parse_args()
   common.print_banner()
@@ -61,12 +100,22 @@ def main():
   print(f'before {revs["before"]} ({git("log", "-1", "--format=%s", a.before)[:60]})')
   print(f'after  {revs["after"]} ({git("log", "-1", "--format=%s", a.after)[:60]})')
   runs = {'before': [], 'after': []}
+  hlo = None
   with tempfile.TemporaryDirectory() as tmp:
     trees = {}
     for name, rev in revs.items():
       trees[name] = os.path.join(tmp, name)
       git('worktree', 'add', '--detach', trees[name], rev)
     try:
+      if a.hlo:
+        same = {}
+        for r1_every in (1, 4):
+          progs = {n: compiled_program(trees[n], r1_every) for n in trees}
+          same[r1_every] = progs['before'] == progs['after']
+          print(f'compiled train step (small DUSty-I, R1 every {r1_every}): '
+                f'{len(progs["before"])} vs {len(progs["after"])} HLO instructions, '
+                f'{"identical" if same[r1_every] else "DIFFERENT"}', flush=True)
+        hlo = {f'r1_every_{k}': v for k, v in same.items()}
       for r in range(a.rounds):
         for name in ('before', 'after'):
           res = measure(trees[name], a, os.path.join(tmp, f'{name}_{r}.json'))
@@ -77,13 +126,14 @@ def main():
       for t in trees.values():
         git('worktree', 'remove', '--force', t)
   summary = {}
-  for k in runs['before'][0]:
+  for k in (runs['before'][0] if runs['before'] else {}):
     b = statistics.median(x[k] for x in runs['before'])
     f = statistics.median(x[k] for x in runs['after'])
     summary[k] = dict(before_s=b, after_s=f, ratio=f / b)
     print(f'{k}: before {b:.2f} s, after {f:.2f} s per step (median of {a.rounds} '
           f'rounds); after / before = {f / b:.3f}')
-  common.write_json(a.out, dict(revisions=revs, args=vars(a), runs=runs, summary=summary))
+  common.write_json(a.out, dict(revisions=revs, args=vars(a), runs=runs, summary=summary,
+                                identical_hlo=hlo))
 
 
 if __name__ == '__main__':
