@@ -96,7 +96,8 @@ def test_impls_agree_including_r1_double_backward():
   s = tiny_sensor(16, 64)
   outs = {}
   for impl in ('matmul', 'xla'):
-    g, d = models.build('dusty2', s, latent_dim=16, ch_base=4, ch_max=16, impl=impl)
+    m = models.ModelSettings('dusty2', latent_dim=16, ch_base=4, ch_max=16)
+    g, d = m.generator(s, impl), m.discriminator(s, impl)
     z = jax.random.normal(jax.random.key(0), (2, 16))
     gp = jax.jit(g.init)(jax.random.key(1), z)
     x = jnp.tanh(jax.jit(g.apply)(gp, z)[..., 0])
@@ -113,7 +114,8 @@ def test_impls_agree_including_r1_double_backward():
 @pytest.mark.parametrize('preset, shape', [('kitti', (64, 256)), ('mpo', (32, 256))])
 def test_shapes_derive_from_sensor(preset, shape):
   s = get_sensor(preset)
-  g, d = models.build('dusty1', s, latent_dim=8, ch_base=2, ch_max=4)
+  m = models.ModelSettings('dusty1', latent_dim=8, ch_base=2, ch_max=4)
+  g, d = m.generator(s), m.discriminator(s)
   z = jnp.zeros((1, 8))
   gp = jax.eval_shape(g.init, jax.random.key(0), z)
   assert gp['params']['proj'].shape == (8, shape[0] // 16 * shape[1] // 16 * 4)
@@ -125,6 +127,8 @@ def test_shapes_derive_from_sensor(preset, shape):
 
 def test_bad_sensor_shape():
   with pytest.raises(ValueError, match='multiples of 16'):
-    models.build('dusty1', tiny_sensor(24, 64))
+    models.ModelSettings('dusty1').generator(tiny_sensor(24, 64))
+  with pytest.raises(ValueError, match='multiples of 16'):
+    models.ModelSettings('dusty1').discriminator(tiny_sensor(16, 72))
   with pytest.raises(ValueError, match="unknown model 'dusty3'"):
-    models.build('dusty3', tiny_sensor(16, 64))
+    models.ModelSettings('dusty3')
