@@ -24,12 +24,21 @@ def _close(a, b, rtol=1e-5, atol=1e-6):
     np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol)
 
 
+N = 2  # examples per batch
+
+
 def _batch(setup, seed=0):
   rng = np.random.default_rng(seed)
-  return jnp.asarray(rng.uniform(-1, 1, (4,) + setup.sensor.shape), jnp.float32)
+  return jnp.asarray(rng.uniform(-1, 1, (N,) + setup.sensor.shape), jnp.float32)
 
 
-def _fakes(setup, n=4):
+def _d_step(setup, state, real, fake, keys, r1_now=True):
+  # r1_now traced, as in train_step: one compilation serves both values.
+  step = jax.jit(lambda dp, do, r, f, k, now: trainer.d_step(setup, dp, do, r, f, k, now))
+  return step(state.d_params, state.d_opt, real, fake, keys, jnp.asarray(r1_now))
+
+
+def _fakes(setup, n=N):
   z = jax.random.normal(jax.random.key(5), (n, setup.settings.latent_dim))
   keys = jax.random.split(jax.random.key(6), n)
   return z, keys
@@ -45,8 +54,8 @@ def test_d_step_is_adam_on_the_gan_loss_plus_r1(r1_gamma):
   computed here from the discriminator directly."""
   _, setup, state = _setup(augment='', r1_gamma=r1_gamma, r1_every=1)
   real, fake = _batch(setup, 0), _batch(setup, 1)
-  keys = (_keys(4, 1), _keys(4, 2))
-  d_params, d_opt, m = trainer.d_step(setup, state.d_params, state.d_opt, real, fake, keys)
+  keys = (_keys(N, 1), _keys(N, 2))
+  d_params, d_opt, m = _d_step(setup, state, real, fake, keys)
   apply = setup.discriminator.apply
 
   def total(dp):
@@ -54,7 +63,7 @@ def test_d_step_is_adam_on_the_gan_loss_plus_r1(r1_gamma):
     g = jax.grad(lambda x: apply(dp, x).sum())(real)
     return adv + 0.5 * r1_gamma * jnp.mean(jnp.sum(g ** 2, axis=(1, 2)))
 
-  grads = jax.grad(total)(state.d_params)
+  grads = jax.jit(jax.grad(total))(state.d_params)
   updates, want_opt = setup.d_tx.update(grads, state.d_opt, state.d_params)
   _close(d_params, optax.apply_updates(state.d_params, updates))
   _close(d_opt, want_opt)
@@ -70,11 +79,10 @@ def test_lazy_r1_is_off_between_its_steps():
   reports the penalty and differs."""
   _, setup, state = _setup(augment='', r1_gamma=1.0, r1_every=4)
   real, fake = _batch(setup, 0), _batch(setup, 1)
-  keys = (_keys(4, 1), _keys(4, 2))
-  off = trainer.d_step(setup, state.d_params, state.d_opt, real, fake, keys, r1_now=False)
-  on = trainer.d_step(setup, state.d_params, state.d_opt, real, fake, keys, r1_now=True)
-  no_r1 = setup.replace(r1_gamma=0.0)
-  plain = trainer.d_step(no_r1, state.d_params, state.d_opt, real, fake, keys)
+  keys = (_keys(N, 1), _keys(N, 2))
+  off = _d_step(setup, state, real, fake, keys, r1_now=False)
+  on = _d_step(setup, state, real, fake, keys, r1_now=True)
+  plain = _d_step(setup.replace(r1_gamma=0.0), state, real, fake, keys)
   assert float(off[2]['r1']) == 0.0 and float(on[2]['r1']) > 0
   _close(off[0], plain[0])
   diff = max(float(jnp.abs(a - b).max())
@@ -87,18 +95,22 @@ def test_g_step_through_the_vjp_equals_a_fresh_gradient():
   Adam on the gradient of the non-saturating loss computed from scratch."""
   _, setup, state = _setup()
   z, mask_keys = _fakes(setup)
-  aug_keys = _keys(4, 3)
+  aug_keys = _keys(N, 3)
   render = lambda p: trainer.fake_scans(setup, p, z, mask_keys)['scan']
-  fake, vjp = jax.vjp(render, state.g_params)
-  g_params, g_opt, loss = trainer.g_step(setup, state.g_params, state.g_opt,
-                                         state.d_params, fake, vjp, aug_keys)
+
+  @jax.jit
+  def step(gp, go, dp):
+    fake, vjp = jax.vjp(render, gp)
+    return trainer.g_step(setup, gp, go, dp, fake, vjp, aug_keys)
+
+  g_params, g_opt, loss = step(state.g_params, state.g_opt, state.d_params)
   from dusty_jax import augment
 
   def objective(p):
     x = augment.per_example(aug_keys, render(p), setup.policy, setup.augment_style)
     return losses.g_loss(setup.discriminator.apply(state.d_params, x))
 
-  want_loss, grads = jax.value_and_grad(objective)(state.g_params)
+  want_loss, grads = jax.jit(jax.value_and_grad(objective))(state.g_params)
   updates, want_opt = setup.g_tx.update(grads, state.g_opt, state.g_params)
   np.testing.assert_allclose(loss, want_loss, rtol=1e-6)
   _close(g_params, optax.apply_updates(state.g_params, updates))
