@@ -14,6 +14,9 @@ import jax
 import orbax.checkpoint as ocp
 
 DIRECTORY = 'checkpoints'  # inside a run directory
+# For readers: the values orbax would otherwise set itself, with a warning each.
+READ_ONLY = ocp.CheckpointManagerOptions(read_only=True, save_interval_steps=0,
+                                         create=False)
 
 
 def manager(workdir: str, keep: int = 3, interval: int = 1) -> ocp.CheckpointManager:
@@ -47,7 +50,7 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
     # A fresh reader per attempt: a failed restore leaves a manager's item
     # handlers in a state where the next restore fails too.
     reader = ocp.CheckpointManager(
-        mngr.directory, options=ocp.CheckpointManagerOptions(read_only=True))
+        mngr.directory, options=READ_ONLY)
     try:
       state = restore(reader, step, target)
       reader.close()
@@ -94,7 +97,7 @@ def restore_item(directory: str, name: str, step: int | None = None, log=print):
                             f'steps: {steps}')
   for s in ([step] if step is not None else steps[::-1]):
     reader = ocp.CheckpointManager(
-        directory, options=ocp.CheckpointManagerOptions(read_only=True),
+        directory, options=READ_ONLY,
         item_handlers=ocp.PyTreeCheckpointHandler())
     try:
       meta = reader.item_metadata(s)

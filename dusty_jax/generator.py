@@ -139,8 +139,8 @@ def read_angles(workdir: str, sensor: SensorSpec, angles=None) -> np.ndarray:
   if not os.path.isfile(os.path.join(workdir, arrays.ANGLES)):
     raise FileNotFoundError(
         f'{workdir}: no {arrays.ANGLES} (a run from before runs kept their angle '
-        "table); pass angles= the dataset's angles.npy, or angles='nominal' for the "
-        "sensor's nominal angles")
+        "table); copy its dataset's angles.npy into it, or pass angles= that file "
+        "(angles='nominal': the sensor's nominal angles, which simulated data uses)")
   return arrays.load_angles(workdir, sensor)
 
 
