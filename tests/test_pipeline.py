@@ -69,3 +69,8 @@ def test_process_slices_make_up_the_global_batch_in_order(depth, tiny, process_c
     for s in slices:
       assert s.shape == (GLOBAL_BATCH // process_count,) + tiny.shape
     np.testing.assert_array_equal(np.concatenate(slices), whole(step))
+
+
+def test_a_batch_that_does_not_split_over_processes_is_refused(depth, tiny):
+  with pytest.raises(ValueError, match='batch_size=6 does not split evenly over 4'):
+    Batches(depth, tiny, 6, seed=0, process_index=0, process_count=4)

@@ -59,6 +59,9 @@ class Batches:
 
   def __init__(self, depth: np.ndarray, sensor: SensorSpec, global_batch: int,
                seed: int, process_index: int = 0, process_count: int = 1):
+    if global_batch % process_count:
+      raise ValueError(f'batch_size={global_batch} does not split evenly over '
+                       f'{process_count} processes')
     self.depth, self.sensor = depth, sensor
     self.global_batch, self.seed = global_batch, seed
     self.local = global_batch // process_count
