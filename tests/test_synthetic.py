@@ -138,3 +138,21 @@ def test_simulated_data_unchanged(tiny):
     np.testing.assert_array_equal(one.depth, got[0][i])
     np.testing.assert_array_equal(one.complete, got[1][i])
     np.testing.assert_array_equal(one.drop_prob, got[2][i])
+
+
+def test_synthesize_tool(tmp_path, capsys):
+  from dusty_jax.sensor import get_sensor
+  from dusty_jax.tools import synthesize
+  out = str(tmp_path / 'sim')
+  synthesize.main(['--num', '2', '--val', '1', '--test', '0', '--out', out,
+                   '--workers', '1'])
+  assert "{'train': 2, 'val': 1}" in capsys.readouterr().out
+  kitti = get_sensor('kitti')
+  assert arrays.load_split(out, 'train', kitti).shape == (2,) + kitti.shape
+  assert arrays.load_split(out, 'val', kitti, 'drop_prob').shape == (1,) + kitti.shape
+  assert not os.path.exists(arrays.split_path(out, 'test'))
+  assert os.path.isfile(os.path.join(out, 'preview.png'))
+  with pytest.raises(SystemExit, match="unknown sensor 'hdl'"):
+    synthesize.main(['--num', '2', '--out', out, '--sensor', 'hdl'])
+  with pytest.raises(SystemExit, match='--num=0'):
+    synthesize.main(['--num', '0', '--out', out])
