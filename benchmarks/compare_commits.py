@@ -74,10 +74,16 @@ for line in text.splitlines():
 
 
 def compiled_program(tree: str, r1_every: int) -> list:
+  # In the tree: `python -c` puts the working directory ahead of PYTHONPATH.
   env = dict(os.environ, PYTHONPATH=tree, JAX_PLATFORMS='cpu')
-  out = subprocess.run([sys.executable, '-c', HLO_SNIPPET, str(r1_every)], env=env,
+  code = HLO_SNIPPET + "\nprint('LIBRARY', __import__('dusty_jax').__file__)"
+  out = subprocess.run([sys.executable, '-c', code, str(r1_every)], env=env, cwd=tree,
                        check=True, capture_output=True, text=True).stdout
-  return [l for l in out.splitlines() if not l.startswith('N "')]
+  lines = out.splitlines()
+  library = [l.split(' ', 1)[1] for l in lines if l.startswith('LIBRARY ')]
+  if not library or not os.path.realpath(library[0]).startswith(os.path.realpath(tree)):
+    raise RuntimeError(f'compiled with {library} instead of the library in {tree}')
+  return [l for l in lines if not l.startswith(('N "', 'LIBRARY '))]
 
 
 def main():

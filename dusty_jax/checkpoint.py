@@ -102,8 +102,9 @@ def restore_item(directory: str, name: str, step: int | None = None, log=print):
     try:
       meta = reader.item_metadata(s)
       tree = getattr(meta, 'tree', meta)
-      if not isinstance(tree, dict) or name not in tree:
-        raise KeyError(f'no item {name!r} in the saved state')
+      if isinstance(tree, dict) and tree and name not in tree:
+        raise KeyError(f'{directory}: step {s} holds no {name!r} (it holds '
+                       f'{sorted(tree)})')
       device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
       target = {name: jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype),
                                    tree[name])}
@@ -112,6 +113,8 @@ def restore_item(directory: str, name: str, step: int | None = None, log=print):
       out = reader.restore(s, args=ocp.args.PyTreeRestore(
           item=target, restore_args=args, partial_restore=True))
       return out[name], s
+    except KeyError:
+      raise
     except Exception as e:  # orbax/TensorStore raise many types.
       if step is not None:
         raise ValueError(f'{directory}: checkpoint step {s} does not restore '

@@ -78,6 +78,9 @@ def describe(sensor: SensorSpec, settings: ModelSettings, tolerance: float = 0.0
 
 
 def _from_description(d: dict, source: str):
+  if d.get('format', FORMAT) > FORMAT:
+    raise ValueError(f"{source}: written in generator format {d['format']} by a newer "
+                     f'dusty_jax (this one reads up to {FORMAT}); upgrade dusty_jax')
   try:
     return (sensor_from_dict(d['sensor']), ModelSettings(**d['settings']),
             float(d.get('tolerance', 0.0)))
@@ -151,26 +154,39 @@ def read_angles(workdir: str, sensor: SensorSpec, angles=None) -> np.ndarray:
 
 def load(path: str, step: int | None = None, ema: bool = True,
          config: str | None = None, angles: str | None = None, log=print):
-  """(GeneratorParams, config) of a training run: the EMA generator by default.
+  """(GeneratorParams, config): the EMA generator by default.
 
-  ``path``: a run directory (the newest checkpoint that restores, or
-  ``step``), or one of the authors' ``.pth`` checkpoints with ``config`` their
-  yaml (default: found beside it). ``angles``: a (2, H, W) ``.npy`` table (or
-  the authors' angles.pt, or 'nominal') for runs or files without one.
-  Nothing is written, simulated or read from a dataset.
+  ``path`` is one of:
+    * a run directory: the newest checkpoint that restores, or ``step``;
+      ``config`` is the run's training config (None if only generator.json,
+      angles.npy and checkpoints/ were copied);
+    * a ``.npz`` written by :func:`export` (``config`` None; ``ema`` does
+      not apply: the file holds one generator);
+    * one of the authors' ``.pth`` checkpoints, with ``config=`` their yaml
+      (default: found beside it).
+  ``angles``: a (2, H, W) ``.npy`` table (or the authors' angles.pt, or
+  'nominal') in place of the one the run or file holds (runs from before
+  runs kept one need it). Nothing is written, simulated or read from a
+  dataset.
   """
   if os.path.isfile(path):
     if step is not None:
       raise ValueError(f'{path}: step= is for a run directory, not a single file')
     if path.endswith('.npz'):
-      return load_file(path), None
+      params = load_file(path)
+      if angles is not None:
+        params = params.replace(angles=jnp.asarray(
+            read_angles(path, params.sensor, angles), jnp.float32))
+      return params, None
     from dusty_jax import authors
     fields, run_config = authors.load(path, config=config, ema=ema, angles=angles)
     return GeneratorParams(**fields), run_config
   if config is not None:
     raise ValueError(f"{path}: config= is for an authors' .pth; a run directory "
                      'holds its own')
-  run_config = configs.load(path)
+  has_spec = os.path.isfile(os.path.join(path, SPEC_FILE))
+  run_config = (configs.load(path) if not has_spec or
+                os.path.isfile(os.path.join(path, configs.FILE)) else None)
   sensor, settings, tolerance = read_spec(path)
   table = read_angles(path, sensor, angles)
   name = 'ema_params' if ema else 'g_params'

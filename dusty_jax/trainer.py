@@ -305,9 +305,9 @@ def _check_finite(step, records):
           'the last good checkpoint is kept (lower lr, or raise r1_gamma)')
 
 
-def _save_images(path, params_bundle, z, key):
+def _save_images(path, params, z, key):
   from dusty_jax import sampling, writers
-  out = jax.device_get(sampling.generate(params_bundle, z, key))
+  out = jax.device_get(sampling.generate(params, z, key))
   tiles = [
       [writers.inv_depth_tile(x) for x in out['scan']],
       [writers.inv_depth_tile(x) for x in out['inv_depth']],
@@ -401,9 +401,9 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
       if ckpt_now:
         checkpoint.save(mngr, done, state)
       if is_main and (done % config.image_every == 0 or done == config.num_steps):
-        bundle = generator_params(setup, state.ema_params, angles)
+        ema = generator_params(setup, state.ema_params, angles)
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
-                     bundle, z_img, jax.random.key(0))
+                     ema, z_img, jax.random.key(0))
       bar.update()
   finally:
     bar.close()

@@ -39,7 +39,10 @@ class MetricWriter:
         f.writelines(keep)
       os.replace(path + '.tmp', path)
     self.jsonl = open(path, 'a')
-    self.events = tensorboardX.SummaryWriter(workdir)
+    # On resume, tell TensorBoard to drop what an interrupted run logged
+    # after the checkpoint (it reads the earlier event file too).
+    self.events = tensorboardX.SummaryWriter(
+        workdir, purge_step=resume_step + 1 if resume_step else None)
 
   def write(self, step: int, scalars: dict):
     if not self.enabled:

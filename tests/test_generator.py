@@ -197,3 +197,31 @@ def test_public_names_survive_importing_every_submodule():
     assert 'args' not in inspect.signature(fn).parameters, name
     assert fn.__doc__ and 'python -m' not in fn.__doc__, name
   assert inspect.isclass(dusty_jax.GeneratorParams)
+
+
+def test_generator_files_alone_and_what_is_refused(smoke_run, tmp_path):
+  """generator.json + angles.npy + checkpoints/ are enough (config None); a
+  newer format, an unknown item, and tools given the wrong kind of file fail
+  with a message, before any work."""
+  from dusty_jax.tools import convert, evaluate
+  _, workdir, _ = smoke_run
+  bare = tmp_path / 'bare'
+  bare.mkdir()
+  for name in (generator.SPEC_FILE, 'angles.npy', 'checkpoints'):
+    src = os.path.join(workdir, name)
+    (shutil.copytree if os.path.isdir(src) else shutil.copy)(src, bare / name)
+  params, config = dusty_jax.load_checkpoint(str(bare))
+  full, _ = dusty_jax.load_checkpoint(workdir)
+  assert config is None and params.settings == full.settings
+  with pytest.raises(KeyError, match="holds no 'emma_params'"):
+    checkpoint.restore_item(str(bare / 'checkpoints'), 'emma_params')
+  spec = json.load(open(bare / generator.SPEC_FILE))
+  json.dump(dict(spec, format=generator.FORMAT + 1), open(bare / generator.SPEC_FILE, 'w'))
+  with pytest.raises(ValueError, match='newer dusty_jax'):
+    dusty_jax.load_checkpoint(str(bare))
+  npz = generator.export(full, str(tmp_path / 'g.npz'))
+  with pytest.raises(SystemExit, match='a dusty_jax generator file'):
+    convert.main(['--pth', npz, '--workdir', str(tmp_path / 'converted')])
+  assert not (tmp_path / 'converted').exists()
+  with pytest.raises(SystemExit, match='needs a run directory'):
+    evaluate.main(['--workdir', npz])

@@ -49,9 +49,14 @@ def test_metrics_jsonl_has_one_record_per_step_after_resume(tmp_path):
   recs = [json.loads(l) for l in path.read_text().splitlines()]
   assert [r['step'] for r in recs] == [5, 10, 15, 20]
   assert [r['loss'] for r in recs] == [5, 10, -15, -20]
-  # The event file of the resumed run holds only what that run wrote.
+  # The resumed run's event file holds what it wrote, after a session START
+  # at step 11 telling TensorBoard to drop what an earlier file has from there.
   (events,) = _event_files(tmp_path)
-  assert scalars(read_events(events)) == [(15, 'loss', -15.0), (20, 'loss', -20.0)]
+  read = read_events(events)
+  assert scalars(read) == [(15, 'loss', -15.0), (20, 'loss', -20.0)]
+  starts = [e.step for e in read if e.HasField('session_log')
+            and e.session_log.status == e.session_log.START]
+  assert starts == [11]
 
 
 def test_line_plot_draws_a_png_of_the_asked_size(tmp_path):

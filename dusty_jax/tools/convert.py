@@ -31,6 +31,11 @@ def convert(pth: str, workdir: str, config: str | None = None, ema: bool = True,
   """Writes the run directory ``workdir`` for an authors' checkpoint."""
   from dusty_jax import configs, generator, trainer
   from dusty_jax.data import arrays
+  if not os.path.isfile(pth):
+    raise FileNotFoundError(f'{pth}: no such file')
+  if pth.endswith('.npz'):
+    raise ValueError(f"{pth}: a dusty_jax generator file, not an authors' checkpoint; "
+                     'load it with dusty_jax.load_checkpoint (it needs no converting)')
   if os.path.exists(os.path.join(workdir, configs.FILE)):
     raise FileExistsError(f'{workdir} already holds a run; choose another --workdir')
   if data_dir and not os.path.isdir(data_dir):

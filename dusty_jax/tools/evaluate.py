@@ -60,10 +60,12 @@ def run(a):
   from dusty_jax.data import arrays, pipeline
   from dusty_jax.metrics import protocol
 
+  if not os.path.isdir(a.workdir):
+    raise ValueError(f'{a.workdir}: evaluation needs a run directory (its config names '
+                     "the dataset; convert an authors' .pth with dusty_jax.tools.convert)")
   params, config = generator.load(a.workdir)
   if config is None:
-    raise ValueError(f'{a.workdir}: evaluation needs a run directory (its config names '
-                     'the dataset), not a single generator file')
+    raise ValueError(f'{a.workdir}: no config.json, so no dataset to evaluate against')
   sensor = params.sensor
   d = pipeline.dataset_dir(config, sensor, log=print)
   test = arrays.load_split(d, 'test', sensor)
