@@ -69,6 +69,7 @@ text = step.lower(state, x, jax.random.key(1)).compile().as_text()
 for line in text.splitlines():
   if '=' in line and '(' in line and not re.search(r'file_name_id|file_location_id', line):
     line = re.sub(r'metadata=\{[^}]*\}|, stack_frame_id=\d+', '', line)
+    line = re.sub(r'%[\w.\-]+', '%x', line)  # names follow Python function names
     print(re.sub(r'[0-9]+', 'N', line))
 """
 
