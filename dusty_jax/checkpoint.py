@@ -46,37 +46,31 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
   damaged step directory is moved to ``checkpoints_damaged/`` beside it, so
   that the step can be saved again; nothing is deleted.
   """
-  for step in sorted(mngr.all_steps(), reverse=True):
-    # A fresh reader per attempt: a failed restore leaves a manager's item
-    # handlers in a state where the next restore fails too.
-    reader = ocp.CheckpointManager(
-        mngr.directory, options=READ_ONLY)
-    try:
-      state = restore(reader, step, target)
-      reader.close()
-      return state, step
-    except Exception as e:  # orbax/TensorStore raise many types.
-      reader.close()
-      log(f'warning: checkpoint step {step} in {mngr.directory} does not restore '
-          f'({_reason(e)}); trying the previous one')
-      if set_aside:
-        src = os.path.join(str(mngr.directory), str(step))
-        dst = os.path.join(os.path.dirname(str(mngr.directory).rstrip('/')),
-                           'checkpoints_damaged', f'{step}_{int(time.time())}')
-        if os.path.isdir(src):
-          os.makedirs(os.path.dirname(dst), exist_ok=True)
-          os.replace(src, dst)
-          log(f'moved the damaged step {step} to {dst}')
-        mngr.reload()
-  if mngr.all_steps():
-    raise FileNotFoundError(f'{mngr.directory}: no saved checkpoint restores '
-                            f'(steps {sorted(mngr.all_steps())})')
-  return target, None
+  if not mngr.all_steps():
+    return target, None
+
+  def move_aside(step):
+    src = os.path.join(str(mngr.directory), str(step))
+    dst = os.path.join(os.path.dirname(str(mngr.directory).rstrip('/')),
+                       'checkpoints_damaged', f'{step}_{int(time.time())}')
+    if os.path.isdir(src):
+      os.makedirs(os.path.dirname(dst), exist_ok=True)
+      os.replace(src, dst)
+      log(f'moved the damaged step {step} to {dst}')
+    mngr.reload()
+
+  try:
+    return _newest_that_restores(
+        mngr.directory, mngr.all_steps(), lambda reader, step: restore(reader, step, target),
+        log, on_damaged=move_aside if set_aside else None)
+  except FileNotFoundError:
+    if mngr.all_steps():
+      raise
+    return target, None  # every step was damaged and set aside: start afresh
 
 
-def _reason(e: Exception) -> str:
-  text = str(e).strip()
-  return f'{type(e).__name__}: {text.splitlines()[0][:200]}' if text else type(e).__name__
+class MissingItemError(KeyError):
+  """A checkpoint holds no item of the asked name (not damage)."""
 
 
 def restore_item(directory: str, name: str, step: int | None = None, log=print):
@@ -95,32 +89,56 @@ def restore_item(directory: str, name: str, step: int | None = None, log=print):
   if step is not None and step not in steps:
     raise FileNotFoundError(f'{directory}: no checkpoint of step {step}; saved '
                             f'steps: {steps}')
-  for s in ([step] if step is not None else steps[::-1]):
-    reader = ocp.CheckpointManager(
-        directory, options=READ_ONLY,
-        item_handlers=ocp.PyTreeCheckpointHandler())
+
+  def read(reader, s):
+    meta = reader.item_metadata(s)
+    tree = getattr(meta, 'tree', meta)
+    if isinstance(tree, dict) and tree and name not in tree:
+      raise MissingItemError(f'{directory}: step {s} holds no {name!r} (it holds '
+                             f'{sorted(tree)})')
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    target = {name: jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype),
+                                 tree[name])}
+    args = jax.tree.map(lambda m: ocp.ArrayRestoreArgs(dtype=m.dtype, sharding=device),
+                        target)
+    return reader.restore(s, args=ocp.args.PyTreeRestore(
+        item=target, restore_args=args, partial_restore=True))[name]
+
+  return _newest_that_restores(directory, steps if step is None else [step], read, log,
+                               handlers=ocp.PyTreeCheckpointHandler(),
+                               fallback=step is None)
+
+
+def _reason(e: Exception) -> str:
+  text = str(e).strip()
+  return f'{type(e).__name__}: {text.splitlines()[0][:200]}' if text else type(e).__name__
+
+
+def _newest_that_restores(directory, steps, attempt, log, handlers=None,
+                          on_damaged=None, fallback: bool = True):
+  """(attempt(reader, step), step) for the newest of ``steps`` it succeeds on.
+
+  A step that fails is reported and, with ``fallback``, the previous one is
+  tried (``on_damaged(step)`` first); without, the failure is a ValueError.
+  A MissingItemError is the caller's mistake, not damage: it propagates.
+  """
+  for step in sorted(steps, reverse=True):
+    # A fresh reader per attempt: a failed restore leaves a manager's item
+    # handlers in a state where the next restore fails too.
+    reader = ocp.CheckpointManager(directory, options=READ_ONLY, item_handlers=handlers)
     try:
-      meta = reader.item_metadata(s)
-      tree = getattr(meta, 'tree', meta)
-      if isinstance(tree, dict) and tree and name not in tree:
-        raise KeyError(f'{directory}: step {s} holds no {name!r} (it holds '
-                       f'{sorted(tree)})')
-      device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-      target = {name: jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype),
-                                   tree[name])}
-      args = jax.tree.map(lambda m: ocp.ArrayRestoreArgs(dtype=m.dtype, sharding=device),
-                          target)
-      out = reader.restore(s, args=ocp.args.PyTreeRestore(
-          item=target, restore_args=args, partial_restore=True))
-      return out[name], s
-    except KeyError:
+      return attempt(reader, step), step
+    except MissingItemError:
       raise
     except Exception as e:  # orbax/TensorStore raise many types.
-      if step is not None:
-        raise ValueError(f'{directory}: checkpoint step {s} does not restore '
+      if not fallback:
+        raise ValueError(f'{directory}: checkpoint step {step} does not restore '
                          f'({_reason(e)})') from None
-      log(f'warning: checkpoint step {s} in {directory} does not restore '
+      log(f'warning: checkpoint step {step} in {directory} does not restore '
           f'({_reason(e)}); trying the previous one')
+      if on_damaged:
+        on_damaged(step)
     finally:
       reader.close()
-  raise FileNotFoundError(f'{directory}: no saved checkpoint restores (steps {steps})')
+  raise FileNotFoundError(f'{directory}: no saved checkpoint restores (steps '
+                          f'{sorted(steps)})')

@@ -62,18 +62,8 @@ class GeneratorParams(struct.PyTreeNode):
 # ----------------------------------------------------------------------------
 
 
-def sensor_to_dict(sensor: SensorSpec) -> dict:
-  d = dataclasses.asdict(sensor)
-  return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple)) else v)
-          for k, v in d.items()}
-
-
-def sensor_from_dict(d: dict) -> SensorSpec:
-  return SensorSpec(**dict(d, elevation_deg=tuple(d['elevation_deg'])))
-
-
 def describe(sensor: SensorSpec, settings: ModelSettings, tolerance: float = 0.0) -> dict:
-  return {'format': FORMAT, 'sensor': sensor_to_dict(sensor),
+  return {'format': FORMAT, 'sensor': sensor.to_dict(),
           'settings': dataclasses.asdict(settings), 'tolerance': float(tolerance)}
 
 
@@ -82,7 +72,7 @@ def _from_description(d: dict, source: str):
     raise ValueError(f"{source}: written in generator format {d['format']} by a newer "
                      f'dusty_jax (this one reads up to {FORMAT}); upgrade dusty_jax')
   try:
-    return (sensor_from_dict(d['sensor']), ModelSettings(**d['settings']),
+    return (SensorSpec.from_dict(d['sensor']), ModelSettings(**d['settings']),
             float(d.get('tolerance', 0.0)))
   except (KeyError, TypeError, ValueError) as e:
     raise ValueError(f'{source}: not a generator description ({e})') from None
@@ -97,16 +87,17 @@ def save_spec(workdir: str, sensor: SensorSpec, settings: ModelSettings, angles,
                      f'{sensor.name!r} {sensor.shape}')
   os.makedirs(workdir, exist_ok=True)
   arrays.save_array(os.path.join(workdir, arrays.ANGLES), angles)
-  tmp = os.path.join(workdir, SPEC_FILE + '.tmp')
-  with open(tmp, 'w') as f:
-    json.dump(describe(sensor, settings, tolerance), f, indent=2)
-  os.replace(tmp, os.path.join(workdir, SPEC_FILE))
+  _write_spec(workdir, sensor, settings, tolerance)
 
 
 def set_tolerance(workdir: str, tolerance: float):
   """Records a tuned drop tolerance (the baseline's beta) in a run (a run
   from before generator.json gets one, described by its config.json)."""
   sensor, settings, _ = read_spec(workdir)
+  _write_spec(workdir, sensor, settings, tolerance)
+
+
+def _write_spec(workdir, sensor, settings, tolerance):
   path = os.path.join(workdir, SPEC_FILE)
   with open(path + '.tmp', 'w') as f:
     json.dump(describe(sensor, settings, tolerance), f, indent=2)

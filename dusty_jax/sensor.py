@@ -43,6 +43,17 @@ class SensorSpec:
   max_depth: float = 120.0
   mount_height: float = 1.73
 
+  def to_dict(self) -> dict:
+    """JSON-ready fields (``elevation_deg`` as a list); :meth:`from_dict`
+    reads them back."""
+    d = dataclasses.asdict(self)
+    d['elevation_deg'] = list(d['elevation_deg'])
+    return d
+
+  @classmethod
+  def from_dict(cls, d: dict) -> 'SensorSpec':
+    return cls(**dict(d, elevation_deg=tuple(d['elevation_deg'])))
+
   def __post_init__(self):
     if len(self.elevation_deg) < 1:
       raise ValueError(f'sensor {self.name!r}: no rings given')

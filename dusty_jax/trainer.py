@@ -70,9 +70,6 @@ class Setup:
   drop_const: float = static()
 
 
-legacy_get = configs.legacy_get
-
-
 def make_setup(config, sensor: SensorSpec) -> Setup:
   settings = models.ModelSettings.from_config(config)
   impl = config.impl or None
@@ -84,9 +81,9 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
     return optax.adam(config.lr * c, b1=config.beta1 ** c, b2=config.beta2 ** c,
                       eps=config.adam_eps)
   policy = tuple(p for p in config.augment.split(',') if p)
-  style = legacy_get(config, 'augment_style')
+  style = configs.legacy_get(config, 'augment_style')
   augment.check(policy, style)
-  drop_const = float(legacy_get(config, 'drop_const'))
+  drop_const = float(configs.legacy_get(config, 'drop_const'))
   if drop_const > codec.ALPHA:
     raise ValueError(f'drop_const={drop_const}: must be <= {codec.ALPHA} '
                      '(inside the depth range a drop would read as a surface)')

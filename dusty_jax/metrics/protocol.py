@@ -172,9 +172,7 @@ def version() -> str:
 
 
 def sensor_record(sensor: SensorSpec) -> dict:
-  d = dataclasses.asdict(sensor)
-  d['elevation_deg'] = list(d['elevation_deg'])
-  return {'height': sensor.height, **d}
+  return {'height': sensor.height, **sensor.to_dict()}
 
 
 def provenance(protocol: str, num: int, points, seeds, subset_rule: str,
