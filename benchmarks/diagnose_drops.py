@@ -224,8 +224,9 @@ def main(argv=None):
       'fake_mean_x': float(np.asarray(fake['scan']).mean()),
       'fake_mean_x_tilde': float(np.asarray(fake['inv_depth']).mean()),
   }
-  if config.model != 'baseline':
-    p = np.asarray(models.measurability(config.model, fake['logit']))
+  variant = models.get_variant(config.model)
+  if variant.has_measurability:
+    p = np.asarray(variant.measurability(fake['logit']))
     rows['fake_measurability_mean'] = float(p.mean())
     rows['fake_drop_rate_by_row_top_mid_bottom'] = [
         float(1 - p[:, r].mean()) for r in (0, sensor.height // 2, sensor.height - 1)]

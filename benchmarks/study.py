@@ -38,9 +38,15 @@ import numpy as np
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug')
+MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug', 'dusty1_drops', 'dusty2_drops')
+TRADE_RUN = 'dusty1'  # the run whose inversion time vs quality (trade) is measured
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
-          'dusty1_noaug': 'DUSty-I, no DiffAugment'}
+          'dusty1_noaug': 'DUSty-I, no DiffAugment',
+          'dusty1_drops': 'DUSty-I, drops variant', 'dusty2_drops': 'DUSty-II, drops variant'}
+# What --export writes each model as (dusty_jax/pretrained/NAME.npz).
+EXPORT_NAMES = {'dusty1_drops': 'sim-dusty1', 'dusty1': 'sim-dusty1-authors',
+                'baseline': 'sim-baseline'}
+REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
 TRADE_ITERS = (50, 100, 200, 500, 1000)
 KITTI_SAMPLE = os.path.join(HERE, '..', '..', 'shared', 'data', 'kitti-sample')
@@ -66,7 +72,14 @@ def parse_args(argv=None):
   p.add_argument('--invert-steps', type=int, default=500)
   p.add_argument('--num-trade', type=int, default=16)
   p.add_argument('--export', action='store_true',
-                 help='write DUSty-I and baseline into dusty_jax/pretrained/')
+                 help=f'write the models into dusty_jax/pretrained/ as {EXPORT_NAMES}')
+  p.add_argument('--from-pretrained', default='',
+                 help='MODEL=NAME,...: evaluate a shipped generator as MODEL instead '
+                      'of training it (its run directory is made from the file)')
+  p.add_argument('--reuse', default='',
+                 help='an earlier study.json: models given by --from-pretrained take '
+                      f'its {REUSED_SECTIONS} sections (the same generators) instead '
+                      'of recomputing them')
   return p.parse_args(argv)
 
 
@@ -81,6 +94,24 @@ def model_config(model, a):
   if a.steps:
     c.num_steps = a.steps
   return c
+
+
+def seed_from_pretrained(model, name, a, reuse):
+  """Makes WORKDIR/MODEL a run holding the shipped generator ``name`` (once),
+  with ``reuse``'s sections for it in its evaluation cache."""
+  import dusty_jax
+  from dusty_jax import trainer
+  workdir = os.path.join(a.workdir, model)
+  if not os.path.isfile(os.path.join(workdir, 'config.json')):
+    print(f'== {LABELS[model]}: the shipped {name!r}, not trained here', flush=True)
+    trainer.init_run(workdir, model_config(model, a), dusty_jax.load_pretrained(name))
+  if reuse and model in reuse['results']:
+    cache = Cache(os.path.join(workdir, 'study_eval.json'))
+    for section in REUSED_SECTIONS:
+      if section in reuse['results'][model] and section not in cache.data:
+        cache.get(section, lambda: reuse['results'][model][section])
+    if model == TRADE_RUN and 'trade' not in cache.data and 'trade' in reuse:
+      cache.get('trade', lambda: reuse['trade'])
 
 
 def train(model, a):
@@ -139,7 +170,7 @@ def invert_batched(params, target, steps, key, batch=16, desc='inverting'):
 def renders_drop(params, inv_depth):
   """Pixels the baseline renders as dropped (x_tilde within beta of ALPHA)."""
   from dusty_jax.codec import ALPHA
-  return None if params.model != 'baseline' else inv_depth <= ALPHA + params.tolerance
+  return None if params.variant.has_measurability else inv_depth <= ALPHA + params.tolerance
 
 
 def synthesis(params, config, split, a):
@@ -152,7 +183,7 @@ def synthesis(params, config, split, a):
                                      sensor))
   n = len(ref)
   tol = 0.0
-  if params.model == 'baseline':
+  if not params.variant.has_measurability:
     val = split('val')
     val = np.asarray(codec.encode(val[protocol.evenly(len(val), n)], sensor))
     gen = sampling.sample_scans(params, jax.random.key(0), len(val))
@@ -266,12 +297,12 @@ def picture_samples(models, path):
   writers.save_grid(path, rows, scale=2)
 
 
-def picture_reliability(results, path):
+def picture_reliability(results, params_by_model, path):
   plt = common.pyplot()
   fig, ax = plt.subplots(figsize=(5, 4.5))
   ax.plot([0, 1], [0, 1], 'k:', lw=1, label='perfectly calibrated')
   for model, r in results.items():
-    if model == 'baseline':
+    if not params_by_model[model].variant.has_measurability:
       continue
     rel = r['disentangle']['measurability']['reliability']
     pred, truth = np.asarray(rel['pred'], float), np.asarray(rel['truth'], float)
@@ -375,7 +406,7 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
                    f'{100 * d["coverage"]:.1f}', f3(d['fit']['mae_m']),
                    f3(d['fit']['abs_rel']), f3(m['ece']), f3(m['ece_surface']),
                    f3(m['brier']), f3(m['brier_surface']), f3(m['auc']),
-                   f3(m['auc_surface'])])
+                   f3(m['auc_surface']), f3(m['auc_near']), f3(m['ece_near'])])
   r_rows = []
   for model, r in results.items():
     for spec, v in r['restoration'].items():
@@ -391,7 +422,8 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
   lines = [
       '# Study: baseline vs DUSty-I vs DUSty-II on simulated scenes',
       '',
-      f'Generated by `python benchmarks/study.py --workdir {a.workdir} --scale {a.scale}`'
+      f'Generated by `python benchmarks/study.py --workdir {a.workdir} --scale {a.scale}'
+      f' --models {a.models}`'
       f' on {machine}. Training on the simulated default data (2000 HDL-64E scans,'
       ' 64x256, procedural scenes); evaluation on the simulated test split, whose'
       ' complete depth and true drop probability are known.',
@@ -405,6 +437,17 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
       'Training time: ' + ', '.join(f'{LABELS[m]} {s / 60:.1f} min'
                                     for m, s in train_seconds.items()) + '.',
       '',
+  ]
+  if a.from_pretrained:
+    lines += [f'Not trained in this run: {a.from_pretrained} (MODEL=shipped generator,'
+              ' trained by an earlier run of this study with the same settings); with'
+              f' `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
+              ' sections are that run\'s, the rest computed here.', '']
+  if any(m.endswith('_drops') for m in results):
+    from dusty_jax import configs
+    lines += ['The drops variants (beyond the paper, README "Point-drops that survive'
+              f' training") add `drops` options {configs.DROPS_VARIANT}.', '']
+  lines += [
       f'## Synthesis (Table II layout; N = {first["synthesis"]["num"]} clouds of'
       f' {first["synthesis"]["points"]} points, {first["synthesis"]["seeds"]} seeds)',
       '',
@@ -423,7 +466,7 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
       '',
       md_table(['model', 'compl. MAE m', 'compl. AbsRel', 'coverage %', 'fit MAE m',
                 'fit AbsRel', 'ECE', 'ECE surf.', 'Brier', 'Brier surf.', 'AUC',
-                'AUC surf.'], d_rows),
+                'AUC surf.', 'AUC < 40 m', 'ECE < 40 m'], d_rows),
       '',
       '![reliability](study_reliability.png)',
       '',
@@ -471,12 +514,19 @@ def main(argv=None):
   bad = [m for m in models if m not in MODELS]
   if bad:
     sys.exit(f'error: unknown models {bad}; known: {list(MODELS)}')
+  seeded = dict(item.split('=', 1) for item in a.from_pretrained.split(',') if item)
+  reuse = json.load(open(a.reuse)) if a.reuse else None
+  for m, name in seeded.items():
+    seed_from_pretrained(m, name, a, reuse)
   train_seconds = {}
+  if reuse:
+    train_seconds.update({m: reuse['train_seconds'][m] for m in seeded
+                          if m in reuse.get('train_seconds', {})})
   times_path = os.path.join(a.workdir, 'train_seconds.json')
   if os.path.isfile(times_path):
-    train_seconds = json.load(open(times_path))
+    train_seconds.update(json.load(open(times_path)))
   if not a.eval_only:
-    for m in models:
+    for m in [m for m in models if m not in seeded]:
       dt = train(m, a)
       train_seconds[m] = train_seconds.get(m, 0.0) + dt
       os.makedirs(a.workdir, exist_ok=True)
@@ -499,7 +549,7 @@ def main(argv=None):
         'restoration': cache.get('restoration', lambda: restoration(params, split, a, m)),
     }
     results[m]['seconds'] = cache.data['seconds']
-  key = 'dusty1' if 'dusty1' in models else models[0]
+  key = TRADE_RUN if TRADE_RUN in models else models[0]
   cache = Cache(os.path.join(a.workdir, key, 'study_eval.json'))
   params = params_by_model[key]
   config = dusty_jax.load_checkpoint(os.path.join(a.workdir, key))[1]
@@ -507,10 +557,11 @@ def main(argv=None):
   trade_result = cache.get('trade', lambda: trade(params, split, a))
   os.makedirs(a.out, exist_ok=True)
   picture_samples(params_by_model, os.path.join(a.out, 'study_samples.png'))
-  picture_reliability(results, os.path.join(a.out, 'study_reliability.png'))
+  picture_reliability(results, params_by_model, os.path.join(a.out, 'study_reliability.png'))
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   picture_restoration(a.workdir, params_by_model, os.path.join(a.out, 'study_restoration.png'))
-  kitti_file = picture_kitti(params, os.path.join(a.out, 'study_kitti.png'))
+  kitti_file = picture_kitti(params_by_model.get('dusty1_drops', params),
+                             os.path.join(a.out, 'study_kitti.png'))
   text = report(results, trade_result, train_seconds, a, machine, kitti_file)
   with open(os.path.join(a.out, 'study.md'), 'w') as f:
     f.write(text)
@@ -520,10 +571,10 @@ def main(argv=None):
   print(text)
   if a.export:
     from dusty_jax import pretrained
-    for m in ('dusty1', 'baseline', 'dusty1_noaug'):
-      if m in params_by_model:
-        path = pretrained.export(params_by_model[m], f'sim-{m.replace("_", "-")}',
-                                 source=f'benchmarks/study.py --scale {a.scale}')
+    for m, name in EXPORT_NAMES.items():
+      if m in params_by_model and m not in seeded:
+        path = pretrained.export(params_by_model[m], name,
+                                 source=f'benchmarks/study.py --scale {a.scale} ({m})')
         print(f'exported {path} ({os.path.getsize(path) / 1e6:.2f} MB)')
 
 

@@ -28,7 +28,14 @@ import os
 import pickle
 import zipfile
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import yaml
+
+from dusty_jax import codec, configs, models
+from dusty_jax import sensor as sensor_lib
+from dusty_jax.sensor import check_angles
 
 _DTYPES = {'FloatStorage': np.float32, 'DoubleStorage': np.float64,
            'HalfStorage': np.float16, 'LongStorage': np.int64,
@@ -181,7 +188,7 @@ def read_torch_checkpoint(path: str):
 # Their config and key layout -> ours.
 # ----------------------------------------------------------------------------
 
-_ARCH = {'none': 'baseline', 'dusty1': 'dusty1', 'dusty2': 'dusty2'}
+_ARCH = {v.authors_arch: v.name for v in models.VARIANTS.values()}  # their masker -> ours
 _DEPTHS = (0.9, 120.0)  # the range of their datasets' configs and of our sensors
 
 
@@ -208,8 +215,6 @@ def find_config(path: str) -> str:
 
 def config_from_yaml(path: str):
   """Our ConfigDict (eqlr='authors') from the authors' hydra config of a run."""
-  import yaml
-  from dusty_jax import codec, configs
   with open(path) as f:
     y = yaml.safe_load(f)
   try:
@@ -248,7 +253,8 @@ def _weights(sd, model: str, source: str) -> tuple[dict, dict]:
   of our leaves ('head/kernel', ...) the keys and shapes it came from."""
   if not isinstance(sd, dict):
     raise ValueError(f'{source}: the generator state dict is a {type(sd).__name__}')
-  pre = '' if model == 'baseline' else 'backbone.'
+  variant = models.get_variant(model)
+  pre = variant.authors_prefix
   dusty_keys = any(str(k).startswith('backbone.') for k in sd)
   if dusty_keys != bool(pre):
     raise ValueError(
@@ -281,7 +287,7 @@ def _weights(sd, model: str, source: str) -> tuple[dict, dict]:
                                  w.transpose(2, 3, 0, 1) if w.ndim == 4 else w)}
     p[f'up{i}_bias'] = put(f'up{i}_bias', [f'{i}.2.bias'], [b := get(f'{i}.2.bias')], b)
   # One kernel for the separate heads: depth channel first, then confidence.
-  heads = ['depth'] + ([] if model == 'baseline' else ['confidence'])
+  heads = [h for h, _ in variant.heads]
   keys = [f'4.heads.{h}.1.module.weight' for h in heads]
   ws = [get(k) for k in keys]
   if any(w.ndim != 4 for w in ws) or len({w.shape[0] for w in ws}) != 1:
@@ -295,7 +301,6 @@ def _weights(sd, model: str, source: str) -> tuple[dict, dict]:
     used.add(pre + 'drop_const')
   if 'drop_const' in sd:
     used.add('drop_const')
-    from dusty_jax import codec
     if float(np.asarray(sd['drop_const'])) != codec.ALPHA:
       raise ValueError(f'{source}: drop_const {float(np.asarray(sd["drop_const"]))}; '
                        f'dusty_jax drops to {codec.ALPHA}')
@@ -319,9 +324,7 @@ def read_angles(path: str, sensor) -> np.ndarray:
       raise ValueError(f'{path}: holds a {type(table).__name__}, not an angle table')
     if table.ndim == 3 and table.shape[0] == 2:
       table = _resize_bilinear(table.astype(np.float64), sensor.shape)
-  if np.shape(table) != (2,) + tuple(sensor.shape) or not np.isfinite(table).all():
-    raise ValueError(f'{path}: angles of shape {np.shape(table)}, expected finite '
-                     f'{(2,) + tuple(sensor.shape)}')
+  check_angles(table, sensor.shape, f'{path}: ', finite=True)
   return np.asarray(table, np.float32)
 
 
@@ -356,9 +359,6 @@ def load(path: str, config: str | None = None, ema: bool = True,
     settings) and a ConfigDict like a dusty_jax run's, with
     ``source_checkpoint`` and ``source_step`` added.
   """
-  import jax
-  import jax.numpy as jnp
-  from dusty_jax import models, sensor as sensor_lib
   ckpt = read_torch_checkpoint(path)
   cfg = config_from_yaml(config or find_config(path))
   key = 'G_ema' if ema else 'G'

@@ -7,7 +7,17 @@ and trainer.py's business.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import errno
+import gc
+import inspect
+import logging
 import os
+import re
+import signal
+import sys
+import threading
 import time
 
 import jax
@@ -19,15 +29,190 @@ READ_ONLY = ocp.CheckpointManagerOptions(read_only=True, save_interval_steps=0,
                                          create=False)
 
 
+class CheckpointError(ValueError):
+  """A checkpoint that cannot be read or written; the message says which and
+  what a rerun does. (One of the errors the command lines print as one line;
+  defined here because this module imports nothing of dusty_jax.)"""
+
+
+def _stderr(message: str):
+  print(message, file=sys.stderr)
+
+
+# ----------------------------------------------------------------------------
+# orbax's and TensorStore's chatter, silenced only around dusty_jax's own use
+# of them (see :func:`quiet`), never for the rest of a program.
+# ----------------------------------------------------------------------------
+
+_ORBAX_DIR = os.path.dirname(os.path.dirname(os.path.abspath(ocp.__file__)))
+
+
+class _DropOrbaxRecords(logging.Filter):
+  """orbax logs through absl: per load 'Given directory is read only', per
+  save dozens of info lines, and its failures once more as ERROR records
+  with tracebacks, which reach us as exceptions anyway."""
+
+  def filter(self, record):
+    return not os.path.abspath(record.pathname).startswith(_ORBAX_DIR)
+
+
+class _DropAsyncioReports(logging.Filter):
+  """asyncio's 'Task exception was never retrieved' about the reads a failed
+  restore abandons (each with a TensorStore spec dump)."""
+
+  def filter(self, record):
+    return False
+
+
+class _DrainingLoop(asyncio.SelectorEventLoop):
+  """An event loop that, before closing, awaits the tasks still pending on
+  it. orbax runs each restore in a fresh loop and closes it as soon as one
+  read fails, leaving the other reads running: their TensorStore callbacks
+  then hit a closed loop ('Event loop is closed', once per array)."""
+
+  def close(self):
+    if not self.is_running() and not self.is_closed():
+      pending = asyncio.all_tasks(self)
+      if pending:
+        self.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+    super().close()
+
+
+class _DrainingPolicy(asyncio.DefaultEventLoopPolicy):
+  _loop_factory = _DrainingLoop
+
+
+_quiet_lock = threading.Lock()
+_quiet_depth = 0
+_quiet_saved = {}
+
+
+def _unraisable(hook):
+  def drop_abandoned(unraisable):
+    # 'Exception ignored in: <coroutine object _read_array_index_and_device_put>'
+    # and 'Event loop is closed' from reads orbax abandoned.
+    if inspect.iscoroutine(unraisable.object) or (
+        isinstance(unraisable.exc_value, RuntimeError)
+        and 'Event loop is closed' in str(unraisable.exc_value)):
+      return
+    hook(unraisable)
+  return drop_abandoned
+
+
+@contextlib.contextmanager
+def quiet():
+  """Inside: orbax's absl log records are dropped, the event loops orbax
+  makes await what they leave pending before they close, and asyncio's and
+  the interpreter's reports about abandoned reads are dropped. Everything
+  else (the caller's own logs, other libraries) is untouched, and all is
+  restored on leaving. Re-entrant; the command lines hold it for a whole
+  run, since orbax saves in background threads."""
+  global _quiet_depth
+  with _quiet_lock:
+    _quiet_depth += 1
+    if _quiet_depth == 1:
+      _quiet_saved['filters'] = (_DropOrbaxRecords(), _DropAsyncioReports())
+      logging.getLogger('absl').addFilter(_quiet_saved['filters'][0])
+      logging.getLogger('asyncio').addFilter(_quiet_saved['filters'][1])
+      _quiet_saved['policy'] = asyncio.get_event_loop_policy()
+      asyncio.set_event_loop_policy(_DrainingPolicy())
+      _quiet_saved['hook'] = sys.unraisablehook
+      sys.unraisablehook = _unraisable(sys.unraisablehook)
+  try:
+    yield
+  finally:
+    with _quiet_lock:
+      _quiet_depth -= 1
+      if _quiet_depth == 0:
+        gc.collect()  # abandoned coroutines and tasks report now, while quiet.
+        logging.getLogger('absl').removeFilter(_quiet_saved['filters'][0])
+        logging.getLogger('asyncio').removeFilter(_quiet_saved['filters'][1])
+        asyncio.set_event_loop_policy(_quiet_saved['policy'])
+        sys.unraisablehook = _quiet_saved['hook']
+
+
 def manager(workdir: str, keep: int = 3, interval: int = 1) -> ocp.CheckpointManager:
   path = os.path.join(os.path.abspath(workdir), DIRECTORY)
   opts = ocp.CheckpointManagerOptions(max_to_keep=keep,
                                       save_interval_steps=interval, create=True)
-  return ocp.CheckpointManager(path, options=opts)
+  with quiet():  # it reads every step's metadata, warning about damaged ones.
+    return ocp.CheckpointManager(path, options=opts)
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
-  return mngr.save(step, args=ocp.args.StandardSave(state), force=force)
+  """Starts saving ``state`` as ``step`` (in the background). A failure of
+  the previous save surfaces here, as a CheckpointError saying which steps
+  are intact."""
+  with quiet(), _write_errors(mngr, step), _interrupt_after():
+    return mngr.save(step, args=ocp.args.StandardSave(state), force=force)
+
+
+@contextlib.contextmanager
+def _interrupt_after():
+  """Takes a Ctrl-C that arrives while orbax starts a save once the save is
+  started: interrupted half-way, orbax leaves a background commit that
+  nothing waits for, which fails noisily as the interpreter exits."""
+  if threading.current_thread() is not threading.main_thread():
+    yield
+    return
+  caught = []
+  previous = signal.signal(signal.SIGINT, lambda *a: caught.append(a))
+  try:
+    yield
+  finally:
+    signal.signal(signal.SIGINT, previous)
+    if caught:
+      if previous is signal.default_int_handler:
+        raise KeyboardInterrupt
+      if callable(previous):
+        previous(*caught[0])
+
+
+def wait(mngr: ocp.CheckpointManager):
+  """Waits for the save in progress; its failure is a CheckpointError."""
+  with quiet(), _write_errors(mngr, None):
+    mngr.wait_until_finished()
+
+
+def _no_space(e: BaseException) -> bool:
+  for x in _chain(e):
+    if (isinstance(x, OSError) and x.errno == errno.ENOSPC) or re.search(
+        r'RESOURCE_EXHAUSTED|No space left on device|os_error_code=.?28', str(x)):
+      return True
+  return False
+
+
+def _chain(e: BaseException):
+  seen = []
+  while e is not None and e not in seen:
+    seen.append(e)
+    e = e.__cause__ or e.__context__
+  return seen
+
+
+@contextlib.contextmanager
+def _write_errors(mngr, step):
+  try:
+    yield
+  except Exception as e:  # orbax and TensorStore raise many types.
+    directory = str(mngr.directory)
+    text = ' '.join(str(x) for x in _chain(e))
+    failed = re.search(re.escape(directory.rstrip('/')) + r'/(\d+)\.orbax-checkpoint-tmp',
+                       text)
+    failed = int(failed.group(1)) if failed else step
+    intact = sorted(s for s in ocp.utils.checkpoint_steps(directory) if s != failed)
+    if intact:
+      kept = (f'step {intact[0]} is intact' if len(intact) == 1 else
+              f"steps {', '.join(map(str, intact[:-1]))} and {intact[-1]} are intact")
+      then = f'rerun to resume from {intact[-1]}'
+    else:
+      kept, then = 'no checkpoint was saved before it', 'rerun to start afresh'
+    what = f'checkpoint {failed}' if failed is not None else 'a checkpoint'
+    if _no_space(e):
+      raise CheckpointError(f'no space left on device while writing {what} in '
+                            f'{directory}; {kept}; free space and {then}') from None
+    raise CheckpointError(f'writing {what} in {directory} failed ({_reason(e)}); '
+                          f'{kept}; {then}') from e
 
 
 def restore(mngr: ocp.CheckpointManager, step: int, target):
@@ -36,7 +221,7 @@ def restore(mngr: ocp.CheckpointManager, step: int, target):
   return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
 
 
-def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
+def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
                    set_aside: bool = False):
   """(state, step) from the newest checkpoint that restores, or (target, None).
 
@@ -46,7 +231,9 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
   damaged step directory is moved to ``checkpoints_damaged/`` beside it, so
   that the step can be saved again; nothing is deleted.
   """
-  if not mngr.all_steps():
+  with quiet():  # orbax warns about the metadata of damaged steps.
+    steps = mngr.all_steps()
+  if not steps:
     return target, None
 
   def move_aside(step):
@@ -57,23 +244,27 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=print,
       os.makedirs(os.path.dirname(dst), exist_ok=True)
       os.replace(src, dst)
       log(f'moved the damaged step {step} to {dst}')
-    mngr.reload()
+    with quiet():
+      mngr.reload()
 
   try:
     return _newest_that_restores(
-        mngr.directory, mngr.all_steps(), lambda reader, step: restore(reader, step, target),
+        mngr.directory, steps, lambda reader, step: restore(reader, step, target),
         log, on_damaged=move_aside if set_aside else None)
-  except FileNotFoundError:
-    if mngr.all_steps():
+  except CheckpointError:
+    with quiet():
+      left = mngr.all_steps()
+    if left:
       raise
-    return target, None  # every step was damaged and set aside: start afresh
+    log('no checkpoint restores (each was set aside); training starts afresh')
+    return target, None
 
 
 class MissingItemError(KeyError):
   """A checkpoint holds no item of the asked name (not damage)."""
 
 
-def restore_item(directory: str, name: str, step: int | None = None, log=print):
+def restore_item(directory: str, name: str, step: int | None = None, log=_stderr):
   """(item ``name`` of a saved state, step): reads only that item.
 
   ``directory``: a run's checkpoints/. Without ``step``, the newest step that
@@ -114,6 +305,22 @@ def _reason(e: Exception) -> str:
   return f'{type(e).__name__}: {text.splitlines()[0][:200]}' if text else type(e).__name__
 
 
+def _damage(step_dir: str, e: Exception) -> str:
+  """Why a step does not restore, in words a person can act on."""
+  files = [os.path.join(d, f) for d, _, fs in os.walk(step_dir) for f in fs]
+  if not os.path.isdir(step_dir) or not files:
+    return 'empty step directory'
+  names = {os.path.basename(f) for f in files}
+  if '_CHECKPOINT_METADATA' not in names or '_METADATA' not in names:
+    return 'metadata missing'
+  text = ' '.join(str(x) for x in _chain(e))
+  if re.search(r'OUT_OF_RANGE|truncat|reading array index|Error reading', text):
+    return 'data file truncated'
+  if re.search(r'DATA_LOSS|checksum|corrupt', text, re.I):
+    return 'data file damaged'
+  return f'unreadable: {_reason(e)}'
+
+
 def _newest_that_restores(directory, steps, attempt, log, handlers=None,
                           on_damaged=None, fallback: bool = True):
   """(attempt(reader, step), step) for the newest of ``steps`` it succeeds on.
@@ -122,23 +329,32 @@ def _newest_that_restores(directory, steps, attempt, log, handlers=None,
   tried (``on_damaged(step)`` first); without, the failure is a ValueError.
   A MissingItemError is the caller's mistake, not damage: it propagates.
   """
+  skipped = False
   for step in sorted(steps, reverse=True):
-    # A fresh reader per attempt: a failed restore leaves a manager's item
-    # handlers in a state where the next restore fails too.
-    reader = ocp.CheckpointManager(directory, options=READ_ONLY, item_handlers=handlers)
-    try:
-      return attempt(reader, step), step
-    except MissingItemError:
-      raise
-    except Exception as e:  # orbax/TensorStore raise many types.
-      if not fallback:
-        raise ValueError(f'{directory}: checkpoint step {step} does not restore '
-                         f'({_reason(e)})') from None
-      log(f'warning: checkpoint step {step} in {directory} does not restore '
-          f'({_reason(e)}); trying the previous one')
-      if on_damaged:
-        on_damaged(step)
-    finally:
-      reader.close()
-  raise FileNotFoundError(f'{directory}: no saved checkpoint restores (steps '
-                          f'{sorted(steps)})')
+    with quiet():
+      # A fresh reader per attempt: a failed restore leaves a manager's item
+      # handlers in a state where the next restore fails too.
+      reader = ocp.CheckpointManager(directory, options=READ_ONLY,
+                                     item_handlers=handlers)
+      try:
+        restored = attempt(reader, step)
+      except MissingItemError:
+        raise
+      except Exception as e:  # orbax/TensorStore raise many types.
+        why = _damage(os.path.join(str(directory), str(step)), e)
+        if not fallback:
+          raise CheckpointError(f'{directory}: checkpoint step {step} does not '
+                                f'restore ({why})') from None
+        log(f'warning: checkpoint step {step} in {directory} does not restore '
+            f'({why}); trying the previous one')
+        skipped = True
+        if on_damaged:
+          on_damaged(step)
+        continue
+      finally:
+        reader.close()
+    if skipped:
+      log(f'loaded checkpoint step {step} from {directory}')
+    return restored, step
+  raise CheckpointError(f'{directory}: no saved checkpoint restores (steps '
+                        f'{sorted(steps)})')

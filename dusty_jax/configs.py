@@ -10,6 +10,8 @@ import os
 
 import ml_collections
 
+from dusty_jax import errors, models, sensor as sensor_lib
+
 FILE = 'config.json'  # a run's config, in its directory
 
 
@@ -55,6 +57,10 @@ def default() -> ml_collections.ConfigDict:
   # The authors' schedule: 25,000 kimg = 781,250 steps at batch 32.
   c.num_steps = 25_000_000 // 32
 
+  # Beyond the paper: ways to make point-drops survive training at a small
+  # scale (README "Point-drops that survive training"). All off by default.
+  c.drops = drop_defaults()
+
   # Logging and checkpoints.
   c.log_every = 50
   c.image_every = 500
@@ -64,13 +70,27 @@ def default() -> ml_collections.ConfigDict:
   return c
 
 
-class ConfigError(ValueError):
+def drop_defaults() -> ml_collections.ConfigDict:
+  """The point-drop mechanisms (trainer.DropOptions), all off."""
+  d = ml_collections.ConfigDict()
+  d.mask_channel = 0.0    # > 0: D also sees the keep-mask, x this weight
+  d.mask_noise = 0.0      # std of Gaussian noise added to that channel
+  d.mask_dropout = 0.0    # probability of hiding that channel, per example
+  d.keep_drops = False    # DiffAugment keeps drops as drops (augment.with_mask)
+  d.mask_bias = 0.0       # initial measurability logit (logit of the keep rate)
+  d.mask_lr = 1.0         # update multiplier of the measurability head
+  d.rate_weight = 0.0     # G: + weight x (generated keep rate - real keep rate)^2
+  d.rate_by = 'image'     # image: one rate per batch | ring: one per row
+  return d
+
+
+class ConfigError(errors.UserError, ValueError):
   """A config value that cannot work; the message names the field."""
 
 
 # Fields that decide what a checkpoint holds: a run may not resume with
 # other values (the saved arrays would not fit, or would mean something else).
-ARCHITECTURE = ('model', 'latent_dim', 'ch_base', 'ch_max', 'eqlr', 'sensor')
+ARCHITECTURE = ('model', 'latent_dim', 'ch_base', 'ch_max', 'eqlr', 'sensor', 'drops')
 
 
 def validate(c) -> None:
@@ -78,8 +98,8 @@ def validate(c) -> None:
   def need(ok, field, why):
     if not ok:
       raise ConfigError(f'config field {field}={c.get(field)!r}: {why}')
-  need(c.model in ('baseline', 'dusty1', 'dusty2'), 'model',
-       'known models are baseline, dusty1, dusty2')
+  need(c.model in models.VARIANTS, 'model',
+       f'known models are {", ".join(models.VARIANTS)}')
   for f in ('batch_size', 'num_steps', 'log_every', 'image_every',
             'checkpoint_every', 'keep_checkpoints', 'latent_dim', 'ch_base',
             'ch_max', 'num_images'):
@@ -95,6 +115,27 @@ def validate(c) -> None:
   need(c.ema_halflife_kimg >= 0, 'ema_halflife_kimg', 'must be >= 0')
   need(c.get('drop_const', -1.0) <= -1.0, 'drop_const',
        'must be <= -1 (inside the depth range a drop would read as a surface)')
+  preset = c.sensor.get('preset', '')
+  if preset and preset not in sensor_lib.PRESETS:
+    raise ConfigError(f'config field sensor.preset={preset!r}: known presets are '
+                      f"{', '.join(sorted(sensor_lib.PRESETS))} ('' with "
+                      'sensor.height and sensor.width: a tiny test sensor)')
+  if not preset and not (c.sensor.get('height', 0) >= 1 and c.sensor.get('width', 0) >= 1):
+    raise ConfigError('config field sensor.preset is empty: give a preset, or '
+                      'sensor.height and sensor.width >= 1 for a tiny sensor')
+  d = upgrade(c).drops
+  def need_drop(ok, field, why):
+    if not ok:
+      raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
+  for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight'):
+    need_drop(d[f] >= 0, f, 'must be >= 0')
+  need_drop(d.mask_dropout <= 1, 'mask_dropout', 'a probability: must be <= 1')
+  need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')
+  need_drop(d.rate_by in ('image', 'ring'), 'rate_by', "must be 'image' or 'ring'")
+  model_has_mask = models.get_variant(c.model).has_measurability
+  need_drop(model_has_mask or not (d.mask_channel or d.rate_weight or d.mask_bias
+                                   or d.mask_lr != 1.0),
+            'mask_channel', f'the {c.model} model has no measurability to act on')
 
 
 # Runs written before these options existed trained with what is now the
@@ -102,17 +143,37 @@ def validate(c) -> None:
 LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0}
 
 
-def legacy_get(config, field: str):
-  """A config field, or the value runs older than the field used."""
-  return config.get(field, LEGACY[field])
+def upgrade(config) -> ml_collections.ConfigDict:
+  """The one translation of older configs: a copy in which each field the
+  config predates holds the value such runs used (LEGACY), and the ``drops``
+  group (runs from before it: all off) has every option."""
+  c = ml_collections.ConfigDict(config.to_dict() if hasattr(config, 'to_dict') else config)
+  for field, value in LEGACY.items():
+    if field not in c:
+      c[field] = value
+  drops = drop_defaults()
+  drops.update(c.drops.to_dict() if 'drops' in c else {})
+  c.drops = drops
+  return c
+
+
+def model_settings(config) -> models.ModelSettings:
+  """What a (possibly old) config says about the networks."""
+  c = upgrade(config)
+  return models.ModelSettings(model=c.model, latent_dim=int(c.latent_dim),
+                              ch_base=int(c.ch_base), ch_max=int(c.ch_max),
+                              eqlr=c.eqlr, tau=float(c.tau))
 
 
 def architecture_diff(old, new) -> dict:
   """{field: (old, new)} of the ARCHITECTURE fields that differ between two
   configs; fields a config predates take their LEGACY value."""
+  old, new = upgrade(old), upgrade(new)
   out = {}
   for f in ARCHITECTURE:
-    a, b = old.get(f, LEGACY.get(f)), new.get(f, LEGACY.get(f))
+    a, b = old.get(f), new.get(f)
+    if f == 'drops':  # only the mask channel changes what D's arrays are.
+      a, b = old.drops.mask_channel > 0, new.drops.mask_channel > 0
     if f == 'sensor':
       a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
               b.to_dict() if hasattr(b, 'to_dict') else b)
@@ -127,16 +188,27 @@ def architecture_diff(old, new) -> dict:
 STUDY_SCALES = ('cpu', 'paper')
 
 
+# The point-drop variant the study ships (beyond the paper; README "Point-drops
+# that survive training"): D sees the keep-mask as a noised channel hidden
+# half the time, G matches the real keep rate, and the measurability starts
+# at the data's keep rate (logit(0.8)).
+DROPS_VARIANT = dict(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
+                     rate_weight=10.0, mask_bias=1.386)
+
+
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
-  """``model``: baseline, dusty1, dusty2, or dusty1_noaug (DUSty-I without
+  """``model``: baseline, dusty1, dusty2, dusty1_noaug (DUSty-I without
   DiffAugment: at the CPU scale the discriminator cannot see point-drops
-  through the augmentation, see benchmarks/results/study.md)."""
+  through the augmentation, see benchmarks/results/study.md), or
+  dusty1_drops / dusty2_drops (with DROPS_VARIANT)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()
   c.model = model.split('_')[0]
   if model.endswith('_noaug'):
     c.augment = ''
+  if model.endswith('_drops'):
+    c.drops.update(DROPS_VARIANT)
   c.sensor.preset = 'kitti'
   c.data.dir = ''
   c.data.num_synthetic = 2000
@@ -163,13 +235,14 @@ def save(workdir: str, config):
 
 
 def load(workdir: str) -> ml_collections.ConfigDict:
-  """A run's config, as saved by :func:`save`."""
+  """A run's config, as saved by :func:`save`, older formats translated
+  (:func:`upgrade`)."""
   path = os.path.join(workdir, FILE)
   if not os.path.isfile(path):
     raise FileNotFoundError(f'{path}: not a training run directory (no {FILE}); '
                             'train one with `python -m dusty_jax.train --workdir DIR`')
   with open(path) as f:
     try:
-      return ml_collections.ConfigDict(json.load(f))
+      return upgrade(json.load(f))
     except json.JSONDecodeError as e:
       raise ValueError(f'{path}: not valid JSON ({e})') from None

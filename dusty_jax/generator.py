@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 from typing import Any
 
 import jax
@@ -33,7 +34,7 @@ from flax import struct, traverse_util
 from dusty_jax import checkpoint, configs
 from dusty_jax.data import arrays
 from dusty_jax.models import ModelSettings
-from dusty_jax.sensor import SensorSpec, from_config as sensor_from_config
+from dusty_jax.sensor import SensorSpec, check_angles, from_config as sensor_from_config
 
 SPEC_FILE = 'generator.json'
 FORMAT = 1
@@ -51,6 +52,7 @@ class GeneratorParams(struct.PyTreeNode):
   model = property(lambda self: self.settings.model)
   latent_dim = property(lambda self: self.settings.latent_dim)
   tau = property(lambda self: self.settings.tau)
+  variant = property(lambda self: self.settings.variant)
 
   def module(self, impl: str | None = None):
     """The generator network (Flax module) these variables belong to."""
@@ -82,9 +84,7 @@ def save_spec(workdir: str, sensor: SensorSpec, settings: ModelSettings, angles,
               tolerance: float = 0.0):
   """Writes ``generator.json`` and ``angles.npy`` into a run (atomically)."""
   angles = np.asarray(angles, np.float32)
-  if angles.shape != (2,) + tuple(sensor.shape):
-    raise ValueError(f'angles of shape {angles.shape} do not fit sensor '
-                     f'{sensor.name!r} {sensor.shape}')
+  check_angles(angles, sensor.shape, f'sensor {sensor.name!r}: ')
   os.makedirs(workdir, exist_ok=True)
   arrays.save_array(os.path.join(workdir, arrays.ANGLES), angles)
   _write_spec(workdir, sensor, settings, tolerance)
@@ -119,7 +119,7 @@ def read_spec(workdir: str):
         raise ValueError(f'{path}: not valid JSON ({e})') from None
     return _from_description(d, path)
   config = configs.load(workdir)
-  return (sensor_from_config(config.sensor), ModelSettings.from_config(config),
+  return (sensor_from_config(config.sensor), configs.model_settings(config),
           float(config.get('tolerance', 0.0)))
 
 
@@ -144,7 +144,7 @@ def read_angles(workdir: str, sensor: SensorSpec, angles=None) -> np.ndarray:
 
 
 def load(path: str, step: int | None = None, ema: bool = True,
-         config: str | None = None, angles: str | None = None, log=print):
+         config: str | None = None, angles: str | None = None, log=None):
   """(GeneratorParams, config): the EMA generator by default.
 
   ``path`` is one of:
@@ -158,9 +158,14 @@ def load(path: str, step: int | None = None, ema: bool = True,
   ``angles``: a (2, H, W) ``.npy`` table (or the authors' angles.pt, or
   'nominal') in place of the one the run or file holds (runs from before
   runs kept one need it). Nothing is written, simulated or read from a
-  dataset.
+  dataset. ``log`` (default: stderr) gets a warning per damaged checkpoint
+  skipped, then the step loaded.
   """
   if os.path.isfile(path):
+    if os.path.basename(path) in (configs.FILE, SPEC_FILE):
+      what = 'config' if os.path.basename(path) == configs.FILE else 'generator description'
+      raise ValueError(f"{path}: a training run's {what} file, not a checkpoint; pass "
+                       f'its directory, {os.path.dirname(os.path.abspath(path))}')
     if step is not None:
       raise ValueError(f'{path}: step= is for a run directory, not a single file')
     if path.endswith('.npz'):
@@ -182,7 +187,8 @@ def load(path: str, step: int | None = None, ema: bool = True,
   table = read_angles(path, sensor, angles)
   name = 'ema_params' if ema else 'g_params'
   variables, _ = checkpoint.restore_item(os.path.join(path, checkpoint.DIRECTORY),
-                                         name, step, log=log)
+                                         name, step,
+                                         log=log or (lambda m: print(m, file=sys.stderr)))
   params = GeneratorParams(variables=variables, angles=jnp.asarray(table, jnp.float32),
                            sensor=sensor, settings=settings, tolerance=tolerance)
   check(params, path)

@@ -73,17 +73,40 @@ def target_mask(scan, mask=None):
   return jnp.asarray(mask, bool) & finite
 
 
-def _search_one(params, apply, target, mask, key, num_steps, lr):
-  kz, kn = jax.random.split(key)
-  z = project(jax.random.normal(kz, (params.latent_dim,)))
+def objective(x_tilde, target, mask):
+  """What the search minimises: the mean L1 distance between x_tilde and the
+  target over the mask's pixels (0 where the mask is empty).
+
+  Any function of this signature (one scan's (H, W) arrays -> a scalar) can
+  be passed to :func:`invert` as ``loss``.
+  """
+  count = jnp.maximum(mask.sum(), 1)
+  return jnp.sum(jnp.where(mask, jnp.abs(x_tilde - target), 0.0)) / count
+
+
+def random_start(params, scans, masks, keys):
+  """The authors' start: per scan, z ~ N(0, I) from the first half of the
+  scan's key, projected onto the sphere."""
+  del scans, masks
+  return jax.vmap(lambda k: project(jax.random.normal(
+      jax.random.split(k)[0], (params.latent_dim,))))(keys)
+
+
+# How a search can start, by name: each maps (params, scans (B, H, W), masks,
+# keys (B,)) to (B, d) latents on the sphere, traced inside invert's jit.
+# invert(init=NAME) looks the name up here; a new start is one more entry.
+STARTS = {'random': random_start}
+
+
+def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
+  kn = jax.random.split(key)[1]
   tx = optax.adam(lr_schedule(num_steps, lr))
   opt = tx.init(z)
-  count = jnp.maximum(mask.sum(), 1)
   target = jnp.where(mask, target, 0.0)
 
   def loss_fn(z):
-    x = jnp.tanh(apply(params.variables, z[None])[0, ..., 0])
-    return jnp.sum(jnp.where(mask, jnp.abs(x - target), 0.0)) / count
+    raw = apply(params.variables, z[None])
+    return loss(params.variant.decode_inv_depth(raw)[0], target, mask)
 
   def body(i, carry):
     z, opt = carry
@@ -98,22 +121,56 @@ def _search_one(params, apply, target, mask, key, num_steps, lr):
   return z, loss_fn(z)
 
 
-@functools.partial(jax.jit, static_argnames=('num_steps', 'impl'))
-def _invert(params, scans, masks, keys, num_steps, lr, impl):
+@functools.partial(jax.jit, static_argnames=('start', 'num_steps', 'impl', 'loss'))
+def _invert(params, scans, masks, z0, keys, start, num_steps, lr, impl, loss):
+  """``start``: a name in STARTS, or None to start from ``z0`` (projected)."""
   apply = params.module(impl).apply
-  z, loss = jax.vmap(
-      lambda t, m, k: _search_one(params, apply, t, m, k, num_steps, lr))(
-          scans, masks, keys)
+  z0 = project(z0) if start is None else STARTS[start](params, scans, masks, keys)
+  z, final = jax.vmap(
+      lambda t, m, z, k: _search_one(params, apply, t, m, z, k, num_steps, lr, loss))(
+          scans, masks, z0, keys)
   render_keys = jax.vmap(lambda k: jax.random.fold_in(k, num_steps))(keys)
   out = jax.vmap(lambda zz, k: sampling.generate(params, zz[None], k, impl=impl))(
       z, render_keys)
   out = jax.tree.map(lambda v: v[:, 0], out)
-  out.update(latent=z, loss=loss)
+  out.update(latent=z, loss=final)
   return out
 
 
+def _check_init(params, init, num_scans):
+  """(start name, None) or (None, given latents) of invert's ``init``."""
+  if isinstance(init, str):
+    if init not in STARTS:
+      raise ValueError(f'init={init!r}: known starts are {sorted(STARTS)}, or '
+                       'given latents (B, latent_dim)')
+    return init, None
+  z = jnp.asarray(init, jnp.float32)
+  want = (num_scans, params.latent_dim)
+  if z.shape != want:
+    raise ValueError(f'init latents of shape {z.shape}: expected {want} (one '
+                     'latent of the generator\'s latent_dim per scan)')
+  return None, z
+
+
+def _warn_if_not_encoded(scans: np.ndarray, single: bool):
+  """Warns about scans that lie in [0, 1] with no drop: depth / max_depth
+  (or another [0, 1] normalisation) given for normalised inverse depth. An
+  encoded scan has its returns beyond about twice the minimum range below 0
+  and its drops at ALPHA = -1; a real or simulated scan has both."""
+  suspect = [i for i, x in enumerate(scans)
+             if np.isfinite(x).any() and not (x[np.isfinite(x)] < 0).any()]
+  if suspect:
+    which = 'the scan has' if single else f'scans {suspect} have'
+    warnings.warn(
+        f'{which} no value below 0 and no drop (-1): not normalised inverse depth '
+        'as invert() takes, where far returns lie below 0 and drops at -1. Given '
+        'depth / max_depth (or other [0, 1] values) by mistake? Encode metric '
+        'depth with dusty_jax.codec.encode(depth, params.sensor)', stacklevel=3)
+
+
 def invert(params: GeneratorParams, scan, mask=None, *, key=None,
-           num_steps: int = 1000, lr: float = LR, impl: str | None = None):
+           num_steps: int = 1000, lr: float = LR, impl: str | None = None,
+           init='random', loss=objective):
   """Reconstructs scans by latent search.
 
   Args:
@@ -125,16 +182,29 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     key: a PRNG key (default key 0), scan i then using ``fold_in(key, i)``;
       or one key per scan.
     num_steps: optimisation steps (1000 as in the paper).
+    init: where the search starts: a name in ``STARTS`` (``'random'``, the
+      authors' start, drawn from each scan's key), or given latents (B, d)
+      (one per scan, (d,) for a 2-D scan), projected onto the sphere.
+    loss: the objective ``loss(x_tilde, target, mask) -> scalar`` of one
+      scan (default :func:`objective`, the authors' masked L1); a hashable
+      function, as jit keys its compilation on it.
+    lr: Adam's peak learning rate (a finite number > 0).
 
   Returns:
     dict with ``latent`` (B, d), ``inv_depth`` (x_tilde), ``measurability``,
     ``mask`` and ``scan`` (re-rendered with sampled drops), ``depth``,
     ``valid``, ``points`` (B, H, W, 3) and the final per-scan ``loss``;
     leading batch axis dropped if ``scan`` was 2-D. A scan without any valid
-    pixel gets a defined result (the search does not move it) and a warning.
+    pixel gets a defined result (the search does not move it) and a warning;
+    so does a scan with no value below 0 and no drop (not encoded). A batch
+    of 0 scans gives results with a leading axis of 0 (as numpy: empty in,
+    empty out).
   """
   if not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
     raise ValueError(f'num_steps={num_steps!r}: must be a whole number >= 1')
+  if not isinstance(lr, jax.core.Tracer) and not (
+      np.ndim(lr) == 0 and np.isfinite(lr) and lr > 0):
+    raise ValueError(f'lr={lr!r}: the learning rate must be a finite number > 0')
   sampling.check_params(params)
   scan = jnp.asarray(scan, jnp.float32)
   if scan.ndim not in (2, 3):
@@ -157,6 +227,8 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
   if scan.shape[1:] != params.sensor.shape:
     raise ValueError(f'scan of shape {scan.shape[1:]} does not match the '
                      f'generator\'s sensor {params.sensor.shape}')
+  if not isinstance(scan, jax.core.Tracer):
+    _warn_if_not_encoded(np.asarray(scan), single)
   masks = target_mask(scan, mask)
   scans = jnp.where(jnp.isfinite(scan), scan, ALPHA)
   if not isinstance(masks, jax.core.Tracer):
@@ -172,7 +244,10 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
   else:
     raise ValueError(f'key: expected one key or {len(scans)} keys, got shape '
                      f'{key.shape}')
-  out = _invert(params, scans, masks, keys, num_steps, lr, impl)
+  if single and not isinstance(init, str):
+    init = jnp.asarray(init)[None]
+  start, z0 = _check_init(params, init, len(scans))
+  out = _invert(params, scans, masks, z0, keys, start, num_steps, lr, impl, loss)
   if single:
     out = jax.tree.map(lambda v: v[0], out)
   return out
@@ -193,7 +268,7 @@ def render_drops(params: GeneratorParams, scan, *, key=None,
   scan = jnp.asarray(scan, jnp.float32)
   single = scan.ndim == 2
   batch = scan[None] if single else scan
-  key = jax.random.key(0) if key is None else key
+  key = sampling.as_key(key)
   k_inv, k_mask = jax.random.split(key)
   rec = invert(params, batch, key=k_inv, num_steps=num_steps, impl=impl)
   p = rec['measurability']

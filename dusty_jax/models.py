@@ -20,7 +20,8 @@ in the authors' code). Two choices of the constant (``eqlr``):
 The discriminator's constants are the true fan-in in both (for a forward
 convolution weight[0].numel() is the fan-in).
 
-Models:
+Model variants (``VARIANTS``, looked up by name with :func:`get_variant`;
+nothing outside this file compares their names):
   * ``baseline``: 1 output channel, tanh inverse depth; the scan is x_tilde.
   * ``dusty1``: + a measurability logit, pixel-level Gumbel-sigmoid mask.
   * ``dusty2``: + an image-level logit; masks multiplied, image-level noise
@@ -31,17 +32,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Callable
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from dusty_jax import configs, gumbel, layers
+from dusty_jax import gumbel, layers
 from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import SensorSpec
 
-MODELS = {'baseline': 1, 'dusty1': 2, 'dusty2': 3}  # output channels.
 DOWNSAMPLE = 16  # four stride-2 stages.
 EQLR = ('authors', 'fan_in')
 
@@ -98,19 +98,16 @@ class EqualConv(nn.Module):
     return (layers.conv_up if self.up else layers.conv_down)(x, w, self.impl)
 
 
-def head_groups(out_channels: int) -> tuple:
-  """The authors' heads: 'depth' (1 channel), then 'confidence' (the rest)."""
-  return (1,) if out_channels == 1 else (1, out_channels - 1)
-
-
 class Generator(nn.Module):
   sensor: SensorSpec
-  out_channels: int = 2
+  head_groups: tuple = (1, 1)  # output channels of each head (Variant.head_groups)
   latent_dim: int = 512
   ch_base: int = 64
   ch_max: int = 512
   impl: str = 'matmul'
   eqlr: str = 'authors'
+
+  out_channels = property(lambda self: sum(self.head_groups))
 
   def channels(self, i):
     return min(self.ch_base << i, self.ch_max)
@@ -131,7 +128,7 @@ class Generator(nn.Module):
       x = layers.leaky_act(
           x, self.param(f'up{3 - i}_bias', nn.initializers.zeros, (x.shape[-1],)))
     x = EqualConv(self.out_channels, up=True, impl=self.impl, eqlr=self.eqlr,
-                  groups=head_groups(self.out_channels), name='head')(x)
+                  groups=self.head_groups, name='head')(x)
     return x + self.param('head_bias', nn.initializers.zeros,
                           (self.out_channels,))
 
@@ -144,9 +141,9 @@ class Discriminator(nn.Module):
 
   @nn.compact
   def __call__(self, x):
-    """x: (B, H, W) scans -> (B,) logits."""
+    """x: (B, H, W) scans, or (B, H, W, C) with more channels -> (B,) logits."""
     h0, w0 = check_shape(self.sensor)
-    x = layers.blur_vh(x[..., None])
+    x = layers.blur_vh(x[..., None] if x.ndim == 3 else x)
     for i in range(4):
       c = min(self.ch_base << i, self.ch_max)
       x = EqualConv(c, up=False, impl=self.impl, name=f'down{i}')(x)
@@ -157,48 +154,119 @@ class Discriminator(nn.Module):
     return ((x @ w) * (1.0 / math.sqrt(x.shape[-1])) + b)[:, 0]
 
 
-def compose(model: str, raw, key, tau: float = 1.0, train: bool = True,
-            drop_const: float = ALPHA):
-  """Generator output (B, H, W, C) -> dict of what the scan is made of.
+def _pixel_mask(key, logit, tau, train):
+  del train
+  kp, _ = jax.random.split(key)
+  return gumbel.pixel_mask(kp, logit, tau)
 
-  Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability logits,
-  (B, H, W) for dusty1, (B, H, W, 2) pixel/image for dusty2), ``mask`` (the
-  sampled binary mask) and ``scan`` (x = m * x_tilde + (1 - m) * drop_const;
-  the authors' and the codec's drop constant is ALPHA = -1).
-  """
-  inv = jnp.tanh(raw[..., 0])
-  if model == 'baseline':
-    return {'inv_depth': inv, 'scan': inv, 'mask': jnp.ones_like(inv)}
+
+def _pixel_image_mask(key, logit, tau, train):
   kp, ki = jax.random.split(key)
-  if model == 'dusty1':
-    logit = raw[..., 1]
-    mask = gumbel.pixel_mask(kp, logit, tau)
-  elif model == 'dusty2':
-    logit = raw[..., 1:3]
-    mask = (gumbel.pixel_mask(kp, logit[..., 0], tau) *
-            gumbel.image_mask(ki, logit[..., 1], tau, train))
-  else:
-    raise ValueError(f'unknown model {model!r}; known: {sorted(MODELS)}')
-  scan = mask * inv + (1.0 - mask) * drop_const
-  return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
+  return (gumbel.pixel_mask(kp, logit[..., 0], tau) *
+          gumbel.image_mask(ki, logit[..., 1], tau, train))
 
 
-def compose_per_example(model: str, raw, keys, tau: float = 1.0,
-                        train: bool = True, drop_const: float = ALPHA):
-  """:func:`compose` with one key per example, so results do not depend on
-  how a batch is split across devices."""
-  out = jax.vmap(lambda r, k: compose(model, r[None], k, tau, train, drop_const))(
-      raw, keys)
-  return jax.tree.map(lambda v: v[:, 0], out)
+@dataclasses.dataclass(frozen=True)
+class Variant:
+  """What one model variant is: its output heads, how its outputs make a
+  scan, its measurability, and how the authors' weights map onto it.
+
+  Attributes:
+    name: its name in configs and ``VARIANTS``.
+    heads: (head, channels) of the generator's output, in channel order;
+      the head names are the authors' ('depth', 'confidence').
+    logit: raw output (B, H, W, C) -> the measurability logits, or None
+      (no measurability: every pixel returns a point).
+    sample_mask: (key, logit, tau, train) -> the sampled binary mask.
+    probability: logit -> the test-time (noise-free) probability of a return.
+    authors_arch: the masker part of the authors' generator ``arch``
+      ('none/dcgan_eqlr', ...).
+    authors_prefix: the prefix of the authors' generator state-dict keys.
+  """
+  name: str
+  heads: tuple
+  logit: Callable | None = None
+  sample_mask: Callable | None = None
+  probability: Callable | None = None
+  authors_arch: str = ''
+  authors_prefix: str = ''
+
+  @property
+  def out_channels(self) -> int:
+    return sum(c for _, c in self.heads)
+
+  @property
+  def head_groups(self) -> tuple:
+    """Output channels of each of the authors' separate head layers."""
+    return tuple(c for _, c in self.heads)
+
+  @property
+  def has_measurability(self) -> bool:
+    return self.logit is not None
+
+  def decode_inv_depth(self, raw):
+    """x_tilde, the complete inverse depth in [-1, 1], of raw outputs."""
+    return jnp.tanh(raw[..., 0])
+
+  def compose(self, raw, key, tau: float = 1.0, train: bool = True,
+              drop_const: float = ALPHA):
+    """Generator output (B, H, W, C) -> dict of what the scan is made of.
+
+    Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability
+    logits, (B, H, W) for dusty1, (B, H, W, 2) pixel/image for dusty2;
+    absent without a measurability), ``mask`` (the sampled binary mask) and
+    ``scan`` (x = m * x_tilde + (1 - m) * drop_const; the authors' and the
+    codec's drop constant is ALPHA = -1).
+    """
+    inv = self.decode_inv_depth(raw)
+    if not self.has_measurability:
+      return {'inv_depth': inv, 'scan': inv, 'mask': jnp.ones_like(inv)}
+    logit = self.logit(raw)
+    mask = self.sample_mask(key, logit, tau, train)
+    scan = mask * inv + (1.0 - mask) * drop_const
+    return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
+
+  def compose_per_example(self, raw, keys, tau: float = 1.0,
+                          train: bool = True, drop_const: float = ALPHA):
+    """:meth:`compose` with one key per example, so results do not depend
+    on how a batch is split across devices."""
+    out = jax.vmap(lambda r, k: self.compose(r[None], k, tau, train, drop_const))(
+        raw, keys)
+    return jax.tree.map(lambda v: v[:, 0], out)
+
+  def measurability(self, logit) -> Any:
+    """Probability that each pixel returns a point (test-time, noise-free)."""
+    if not self.has_measurability:
+      raise ValueError(f'model {self.name!r} has no measurability map')
+    return self.probability(logit)
+
+  def measurability_of(self, out: dict):
+    """:meth:`measurability` of a :meth:`compose` result; all ones for a
+    variant without one."""
+    if not self.has_measurability:
+      return jnp.ones_like(out['inv_depth'])
+    return self.measurability(out['logit'])
 
 
-def measurability(model: str, logit) -> Any:
-  """Probability that each pixel returns a point (test-time, noise-free)."""
-  if model == 'dusty1':
-    return jax.nn.sigmoid(logit)
-  if model == 'dusty2':
-    return jax.nn.sigmoid(logit[..., 0]) * (logit[..., 1] > 0)
-  raise ValueError(f'model {model!r} has no measurability map')
+VARIANTS = {
+    'baseline': Variant('baseline', (('depth', 1),), authors_arch='none'),
+    'dusty1': Variant('dusty1', (('depth', 1), ('confidence', 1)),
+                      logit=lambda raw: raw[..., 1], sample_mask=_pixel_mask,
+                      probability=jax.nn.sigmoid, authors_arch='dusty1',
+                      authors_prefix='backbone.'),
+    'dusty2': Variant('dusty2', (('depth', 1), ('confidence', 2)),
+                      logit=lambda raw: raw[..., 1:3], sample_mask=_pixel_image_mask,
+                      probability=lambda l: jax.nn.sigmoid(l[..., 0]) * (l[..., 1] > 0),
+                      authors_arch='dusty2', authors_prefix='backbone.'),
+}
+
+
+def get_variant(name: str) -> Variant:
+  """The model variant of that name; ValueError naming the known ones."""
+  try:
+    return VARIANTS[name]
+  except (KeyError, TypeError):
+    raise ValueError(f'unknown model {name!r}; known: {sorted(VARIANTS)}') from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,8 +281,7 @@ class ModelSettings:
   tau: float = 1.0
 
   def __post_init__(self):
-    if self.model not in MODELS:
-      raise ValueError(f'unknown model {self.model!r}; known: {sorted(MODELS)}')
+    get_variant(self.model)
     check_eqlr(self.eqlr)
     for f in ('latent_dim', 'ch_base', 'ch_max'):
       v = getattr(self, f)
@@ -223,16 +290,13 @@ class ModelSettings:
     if not self.tau > 0:
       raise ValueError(f'tau={self.tau!r}: the Gumbel temperature must be > 0')
 
-  @classmethod
-  def from_config(cls, config) -> 'ModelSettings':
-    """From a training config (fields a config predates take legacy values)."""
-    return cls(model=config.model, latent_dim=int(config.latent_dim),
-               ch_base=int(config.ch_base), ch_max=int(config.ch_max),
-               eqlr=configs.legacy_get(config, 'eqlr'), tau=float(config.tau))
+  @property
+  def variant(self) -> Variant:
+    return get_variant(self.model)
 
   def generator(self, sensor: SensorSpec, impl: str | None = None) -> Generator:
     check_shape(sensor)
-    return Generator(sensor, MODELS[self.model], self.latent_dim, self.ch_base,
+    return Generator(sensor, self.variant.head_groups, self.latent_dim, self.ch_base,
                      self.ch_max, impl or layers.default_impl(), self.eqlr)
 
   def discriminator(self, sensor: SensorSpec, impl: str | None = None) -> 'Discriminator':

@@ -16,6 +16,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from dusty_jax import configs
+
 AXIS = 'data'
 
 
@@ -60,8 +62,9 @@ def shard_batch(local_batch: np.ndarray, mesh: Mesh):
 def local_batch_size(global_batch: int, mesh: Mesh) -> int:
   n_dev, n_proc = mesh.size, jax.process_count()
   if global_batch % n_dev:
-    raise ValueError(f'batch_size={global_batch} is not divisible by the '
-                     f'{n_dev} devices of the data mesh')
+    raise configs.ConfigError(f'config field batch_size={global_batch}: is not divisible '
+                              f'by the {n_dev} devices of the data mesh; use a '
+                              f'multiple of {n_dev}')
   return global_batch // n_proc
 
 

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, models
+from dusty_jax import codec, sensor
 from dusty_jax.generator import GeneratorParams
 
 
@@ -32,11 +32,8 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   """
   raw = params.module(impl).apply(params.variables, z)
-  out = models.compose(params.model, raw, key, params.tau, train)
-  if params.model == 'baseline':
-    out['measurability'] = jnp.ones_like(out['inv_depth'])
-  else:
-    out['measurability'] = models.measurability(params.model, out['logit'])
+  out = params.variant.compose(raw, key, params.tau, train)
+  out['measurability'] = params.variant.measurability_of(out)
   depth, valid, points = decode_scan(params, out['scan'])
   out.update(depth=depth, valid=valid, points=points)
   return out
@@ -59,20 +56,19 @@ def as_key(key, what: str = 'key'):
 
 
 def check_params(params: GeneratorParams):
-  want = (2,) + tuple(params.sensor.shape)
-  if tuple(np.shape(params.angles)) != want:
-    raise ValueError(f'angles of shape {tuple(np.shape(params.angles))} do not match '
-                     f'the generator\'s sensor {params.sensor.name!r}: expected {want}')
+  sensor.check_angles(params.angles, params.sensor.shape,
+                      f'generator of sensor {params.sensor.name!r}: ')
 
 
 def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   """Draws ``num`` scans: z ~ N(0, I), test-time Gumbel sampling.
 
   ``key``: from ``jax.random.key`` (a legacy ``PRNGKey`` is accepted).
-  Returns the dict of :func:`generate`.
+  Returns the dict of :func:`generate`; ``num=0`` gives its arrays with a
+  leading axis of 0 (as numpy, and as ``invert`` of an empty batch).
   """
-  if not isinstance(num, (int, np.integer)) or num < 1:
-    raise ValueError(f'num={num!r}: the number of scans must be a whole number >= 1')
+  if not isinstance(num, (int, np.integer)) or num < 0:
+    raise ValueError(f'num={num!r}: the number of scans must be a whole number >= 0')
   check_params(params)
   key = as_key(key)
   if key.shape != ():
@@ -91,7 +87,7 @@ def sample_scans(params: GeneratorParams, key, num: int, batch: int = 64) -> np.
   """(num, H, W) sampled scans x as numpy, drawn ``batch`` at a time (the
   batch starting at i with ``fold_in(key, i)``)."""
   key = as_key(key)
-  out = []
+  out = [np.zeros((0,) + tuple(params.sensor.shape), np.float32)]
   for i in range(0, num, batch):
     n = min(batch, num - i)
     out.append(np.asarray(sample(params, jax.random.fold_in(key, i), n)['scan']))

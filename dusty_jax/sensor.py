@@ -141,6 +141,18 @@ def tiny_sensor(height: int = 16, width: int = 64) -> SensorSpec:
                     width=width, native_width=width * 8)
 
 
+def check_angles(angles, shape, source: str = '', finite: bool = False):
+  """The one check of a per-pixel (2, H, W) elevation/azimuth table against
+  the scans' (H, W) ``shape``; ``finite``: also refuse NaN and inf (only for
+  tables read from files: a table inside a jitted function is not concrete).
+  ``source`` prefixes the message (a path). Raises ValueError."""
+  want = (2,) + tuple(shape)
+  got = tuple(np.shape(angles))
+  if got != want or (finite and not np.isfinite(angles).all()):
+    raise ValueError(f'{source}angles of shape {got}, expected '
+                     f'{"finite " if finite else ""}{want}')
+
+
 def from_config(cfg) -> SensorSpec:
   """Builds a SensorSpec from a config's ``sensor`` ConfigDict."""
   if cfg.get('preset'):

@@ -2,13 +2,17 @@
 
 Any config field can be overridden, e.g. ``--config.model=dusty2``;
 ``--workdir`` holds checkpoints, metrics and pictures, and a run started
-again in the same workdir resumes from its latest checkpoint.
+again in the same workdir resumes from its latest checkpoint. A mistake in
+the flags or the config is one ``error:`` line (exit 2), any other error a
+user's input causes one line (exit 1), Ctrl-C one line saying what a rerun
+resumes from (exit 130): see cli.py. absl's log shows warnings and errors
+(``--verbosity=0`` for orbax's info lines too).
 """
 
-from absl import app, flags
+from absl import app, flags, logging
 from ml_collections import config_flags
 
-from dusty_jax import parallel
+from dusty_jax import cli, parallel
 
 FLAGS = flags.FLAGS
 config_flags.DEFINE_config_file('config', 'experiments/synthetic.py',
@@ -22,15 +26,18 @@ flags.DEFINE_integer('process_id', None, 'This process in a multi-host run.')
 
 def main(argv):
   if len(argv) > 1:
-    raise app.UsageError(f'unexpected arguments: {argv[1:]}')
+    cli.fail(f'unexpected arguments: {argv[1:]}', cli.USAGE)
+  if not FLAGS['verbosity'].present:
+    logging.set_verbosity(logging.WARNING)
+  cli.run(_train)
+
+
+def _train():
   parallel.initialize_distributed(FLAGS.coordinator, FLAGS.num_processes,
                                   FLAGS.process_id)
-  from dusty_jax import configs, trainer  # after distributed init.
-  try:
-    trainer.train_and_evaluate(FLAGS.config, FLAGS.workdir)
-  except (FileNotFoundError, configs.ConfigError, trainer.NonFiniteLossError) as e:
-    raise SystemExit(f'error: {e}') from None
+  from dusty_jax import trainer  # after distributed init.
+  trainer.train_and_evaluate(FLAGS.config, FLAGS.workdir)
 
 
 if __name__ == '__main__':
-  app.run(main)
+  app.run(main, flags_parser=cli.parse_flags)

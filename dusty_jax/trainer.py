@@ -19,6 +19,7 @@ A step composes three pure functions, each tested alone: ``d_step``, then
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import sys
@@ -30,12 +31,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import tqdm
 from jax import lax
 
-from dusty_jax import augment, codec, configs, generator, losses, models
+from dusty_jax import (augment, checkpoint, codec, configs, errors, generator, losses,
+                       models, parallel, sampling, writers)
+from dusty_jax import sensor as sensor_lib
+from dusty_jax.data import arrays, pipeline
+from dusty_jax.parallel import AXIS
 from dusty_jax.sensor import SensorSpec
-
-AXIS = 'data'
 
 
 class TrainState(flax.struct.PyTreeNode):
@@ -48,6 +52,55 @@ class TrainState(flax.struct.PyTreeNode):
 
 
 static = lambda: flax.struct.field(pytree_node=False)
+
+
+@dataclasses.dataclass(frozen=True)
+class DropOptions:
+  """Point-drop mechanisms beyond the paper (config ``drops``; all off by
+  default, which trains as the authors do).
+
+  * ``mask_channel`` w > 0: the discriminator sees a second channel, the
+    keep-mask times w (real: the returns; fake: the straight-through
+    Gumbel mask, so G's measurability gets D's gradient directly, not only
+    through x_tilde - drop_const). ``mask_noise``: Gaussian noise of this
+    std on that channel; ``mask_dropout``: per example, the channel is
+    hidden (zeroed) with this probability. R1 covers both channels.
+  * ``keep_drops``: DiffAugment keeps drops as drops (augment.with_mask).
+  * ``mask_bias``: the measurability logit's initial bias (the authors' is
+    0: half the pixels dropped at the start); logit(keep rate) starts at
+    the data's rate.
+  * ``mask_lr``: multiplies the Adam updates of the measurability head.
+  * ``rate_weight`` lambda: G's loss + lambda (mean keep - real keep)^2,
+    over the batch (``rate_by='image'``) or per row (``'ring'``, averaged
+    over rows), real keep rates from this step's real batch.
+  """
+  mask_channel: float = 0.0
+  mask_noise: float = 0.0
+  mask_dropout: float = 0.0
+  keep_drops: bool = False
+  mask_bias: float = 0.0
+  mask_lr: float = 1.0
+  rate_weight: float = 0.0
+  rate_by: str = 'image'
+
+  @classmethod
+  def from_config(cls, config) -> 'DropOptions':
+    d = configs.upgrade(config).drops
+    return cls(mask_channel=float(d.mask_channel), mask_noise=float(d.mask_noise),
+               mask_dropout=float(d.mask_dropout), keep_drops=bool(d.keep_drops),
+               mask_bias=float(d.mask_bias), mask_lr=float(d.mask_lr),
+               rate_weight=float(d.rate_weight), rate_by=str(d.rate_by))
+
+  @property
+  def d_sees_mask(self) -> bool:
+    """The discriminator's input carries the keep-mask (as a channel, or as
+    drops an augmentation must keep)."""
+    return self.mask_channel > 0 or self.keep_drops
+
+  @property
+  def g_needs_mask(self) -> bool:
+    """G's loss differentiates the mask itself (not only the scan)."""
+    return self.mask_channel > 0 or self.rate_weight > 0
 
 
 @flax.struct.dataclass
@@ -68,12 +121,13 @@ class Setup:
   policy: tuple = static()
   augment_style: str = static()
   drop_const: float = static()
+  drops: DropOptions = static()
 
 
 def make_setup(config, sensor: SensorSpec) -> Setup:
-  settings = models.ModelSettings.from_config(config)
+  settings = configs.model_settings(config)
   impl = config.impl or None
-  r1_every = max(int(config.r1_every), 1)
+  r1_every = config.r1_every
   def tx(lazy_every=1):
     # StyleGAN2's lazy regularisation: D's Adam sees k / (k + 1) of the
     # schedule (mb_ratio), so its lr and betas are adjusted.
@@ -81,12 +135,8 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
     return optax.adam(config.lr * c, b1=config.beta1 ** c, b2=config.beta2 ** c,
                       eps=config.adam_eps)
   policy = tuple(p for p in config.augment.split(',') if p)
-  style = configs.legacy_get(config, 'augment_style')
+  style = config.augment_style
   augment.check(policy, style)
-  drop_const = float(configs.legacy_get(config, 'drop_const'))
-  if drop_const > codec.ALPHA:
-    raise ValueError(f'drop_const={drop_const}: must be <= {codec.ALPHA} '
-                     '(inside the depth range a drop would read as a surface)')
   return Setup(
       settings=settings, sensor=sensor,
       generator=settings.generator(sensor, impl),
@@ -97,28 +147,47 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
       ema_decay=float(0.5 ** (config.batch_size /
                               max(config.ema_halflife_kimg * 1000, 1e-8))),
       ema_halflife_img=config.ema_halflife_kimg * 1000.0,
-      ema_rampup=float(config.get('ema_rampup', 0.0) or 0.0),
+      ema_rampup=float(config.ema_rampup),
       batch_size=config.batch_size, policy=policy, augment_style=style,
-      drop_const=drop_const)
+      drop_const=float(config.drop_const), drops=DropOptions.from_config(config))
 
 
 def init_state(setup: Setup, key) -> TrainState:
   kg, kd = jax.random.split(key)
   z = jnp.zeros((1, setup.settings.latent_dim))
   g_params = jax.jit(setup.generator.init)(kg, z)
+  if setup.drops.mask_bias:
+    g_params = set_mask_bias(g_params, setup.drops.mask_bias)
+  channels = (2,) if setup.drops.mask_channel > 0 else ()
   d_params = jax.jit(setup.discriminator.init)(
-      kd, jnp.zeros((1,) + setup.sensor.shape))
+      kd, jnp.zeros((1,) + setup.sensor.shape + channels))
   return TrainState(step=jnp.zeros((), jnp.int32), g_params=g_params,
                     d_params=d_params, g_opt=setup.g_tx.init(g_params),
                     d_opt=setup.d_tx.init(d_params),
                     ema_params=jax.tree.map(jnp.copy, g_params))
 
 
+def set_mask_bias(g_params, bias: float):
+  """G's variables with the pixel measurability logit's bias set to ``bias``
+  (head channel 1; DUSty-II's image-level logit is left alone)."""
+  p = flax.core.unfreeze(g_params) if hasattr(g_params, 'unfreeze') else g_params
+  head_bias = p['params']['head_bias'].at[1].set(bias)
+  return {**p, 'params': {**p['params'], 'head_bias': head_bias}}
+
+
+def scale_mask_updates(updates, factor: float):
+  """Multiplies the updates of the measurability head (head channels >= 1)."""
+  params = updates['params']
+  scale = jnp.ones(params['head_bias'].shape).at[1:].set(factor)
+  return {**updates, 'params': {**params, 'head': {'kernel': params['head']['kernel'] * scale},
+                                'head_bias': params['head_bias'] * scale}}
+
+
 def fake_scans(setup: Setup, params, z, keys, train=True):
   """Generator forward and rendering; ``keys``: one per example."""
   raw = setup.generator.apply(params, z)
-  return models.compose_per_example(setup.settings.model, raw, keys,
-                                   setup.settings.tau, train, setup.drop_const)
+  return setup.settings.variant.compose_per_example(
+      raw, keys, setup.settings.tau, train, setup.drop_const)
 
 
 # ----------------------------------------------------------------------------
@@ -141,7 +210,42 @@ def _local(tree, axis_name):
 
 
 def _augment(setup: Setup, keys, x):
+  """What D sees of scans ``x``: DiffAugmented; ``x`` may be a pair (scans,
+  keep-masks) when point-drop options are on (:func:`d_view`)."""
+  if isinstance(x, tuple):
+    return d_view(setup, keys, *x)
   return augment.per_example(keys, x, setup.policy, setup.augment_style)
+
+
+def d_view(setup: Setup, keys, scan, keep):
+  """D's input for scans (B, H, W) and their keep-masks under DropOptions:
+  (B, H, W), or (B, H, W, 2) with the mask channel."""
+  drops = setup.drops
+  if not drops.d_sees_mask:
+    return augment.per_example(keys, scan, setup.policy, setup.augment_style)
+  x, keep = augment.per_example_with_mask(keys, scan, keep, setup.policy,
+                                          setup.augment_style, drops.keep_drops,
+                                          setup.drop_const)
+  if drops.mask_channel <= 0:
+    return x
+  channel = drops.mask_channel * keep
+  # Draws of their own, from the augmentation keys (not reused as they are).
+  extra = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, 1)))(keys)
+  if drops.mask_noise > 0:
+    channel = channel + drops.mask_noise * jax.vmap(
+        lambda k: jax.random.normal(k, scan.shape[1:]))(extra[:, 0])
+  if drops.mask_dropout > 0:
+    hide = jax.vmap(lambda k: jax.random.bernoulli(k, drops.mask_dropout))(extra[:, 1])
+    channel = jnp.where(hide[:, None, None], 0.0, channel)
+  return jnp.stack([x, channel], axis=-1)
+
+
+def rate_penalty(drops: DropOptions, keep, real_keep):
+  """(generated keep rate - real keep rate)^2: of the whole batch, or per
+  row (averaged over rows) with ``rate_by='ring'``."""
+  axes = (0, 2) if drops.rate_by == 'ring' else (0, 1, 2)
+  gap = keep.mean(axis=axes) - lax.stop_gradient(real_keep).mean(axis=axes)
+  return jnp.mean(jnp.square(gap))
 
 
 def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
@@ -177,23 +281,32 @@ def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
 
 
 def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
-           axis_name=None):
+           axis_name=None, real_keep=None):
   """One generator update through ``d_params``: (g_params, g_opt, loss_g).
 
   ``fake`` are the generated scans and ``fake_vjp`` the VJP of the
   generator's forward pass that made them (``jax.vjp``), so the forward pass
   of the D step serves here too (the authors reuse it the same way).
-  ``key``: the augmentation keys, one per example.
+  ``key``: the augmentation keys, one per example. With point-drop options
+  ``fake`` is the pair (scans, keep-masks) and ``real_keep`` the real
+  batch's keep-mask (for ``rate_weight``); the returned loss is then the
+  adversarial loss alone, without the rate penalty.
   """
   d_local = _local(d_params, axis_name)
 
   def objective(scan):
-    return losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, scan)))
+    adv = losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, scan)))
+    if setup.drops.rate_weight > 0:
+      return adv + setup.drops.rate_weight * rate_penalty(
+          setup.drops, scan[1], real_keep), adv
+    return adv, adv
 
-  loss_g, dscan = jax.value_and_grad(objective)(fake)
+  (_, loss_g), dscan = jax.value_and_grad(objective, has_aux=True)(fake)
   (grads,) = fake_vjp(dscan)
   grads = _pmean(grads, axis_name)
   updates, g_opt = setup.g_tx.update(grads, g_opt, g_params)
+  if setup.drops.mask_lr != 1.0:
+    updates = scale_mask_updates(updates, setup.drops.mask_lr)
   return optax.apply_updates(g_params, updates), g_opt, loss_g
 
 
@@ -237,14 +350,22 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   def fakes(p):
     out = fake_scans(setup, p, z, kmask)
     return out['scan'], out['mask']
-  fake, fake_vjp, mask = jax.vjp(fakes, _local(state.g_params, axis_name),
-                                 has_aux=True)
+  real, real_keep = batch, (batch > codec.ALPHA).astype(batch.dtype)
+  if setup.drops.d_sees_mask or setup.drops.g_needs_mask:
+    # The mask is an output G is differentiated through, not only aux.
+    fake, fake_vjp = jax.vjp(fakes, _local(state.g_params, axis_name))
+    mask = fake[1]
+    real = (batch, real_keep)
+  else:
+    fake, fake_vjp, mask = jax.vjp(fakes, _local(state.g_params, axis_name),
+                                   has_aux=True)
 
   d_params, d_opt, d_metrics = d_step(
-      setup, state.d_params, state.d_opt, batch, fake, (kar, kaf),
+      setup, state.d_params, state.d_opt, real, fake, (kar, kaf),
       (state.step % setup.r1_every) == 0, axis_name)
   g_params, g_opt, loss_g = g_step(setup, state.g_params, state.g_opt, d_params,
-                                   fake, fake_vjp, kag, axis_name)
+                                   fake, fake_vjp, kag, axis_name, real_keep)
+  fake = fake[0] if isinstance(fake, tuple) else fake
   ema = ema_update(state.ema_params, g_params, ema_decay(setup, state.step))
   metrics = dict(d_metrics, loss_g=loss_g,
                  drop_rate=jnp.mean(fake <= codec.ALPHA),
@@ -266,8 +387,8 @@ def step_fn(setup: Setup):
 # ----------------------------------------------------------------------------
 
 
-class NonFiniteLossError(FloatingPointError):
-  pass
+class NonFiniteLossError(errors.UserError, FloatingPointError):
+  """Training diverged (a NaN or inf metric); says what a rerun resumes from."""
 
 
 def generator_params(setup: Setup, variables, angles, tolerance=0.0):
@@ -281,7 +402,6 @@ def init_run(workdir: str, config, params) -> None:
   """Starts a run directory from given generator weights (e.g. the authors'):
   config, generator description and a step-0 checkpoint whose G and EMA
   hold ``params.variables`` and whose D and optimisers are fresh."""
-  from dusty_jax import checkpoint
   setup = make_setup(config, params.sensor)
   state = init_state(setup, jax.random.key(config.seed))
   state = state.replace(g_params=params.variables, ema_params=params.variables)
@@ -293,17 +413,22 @@ def init_run(workdir: str, config, params) -> None:
   mngr.wait_until_finished()
 
 
-def _check_finite(step, records):
+def _check_finite(records, last_checkpoint):
+  """``last_checkpoint``: the newest saved step (None: none yet), all of
+  whose metrics were finite."""
   for s, m in records:
     bad = {k: v for k, v in m.items() if not np.isfinite(v)}
     if bad:
+      kept = ('no checkpoint was saved yet, so a rerun starts afresh'
+              if last_checkpoint is None else
+              f'the last checkpoint, step {last_checkpoint}, is kept and a rerun '
+              'resumes from it')
       raise NonFiniteLossError(
-          f'non-finite training metrics at step {s}: {bad}; training stopped, '
-          'the last good checkpoint is kept (lower lr, or raise r1_gamma)')
+          f'non-finite training metrics at step {s}: {bad}; training stopped; '
+          f'{kept} (lower lr, or raise r1_gamma)')
 
 
 def _save_images(path, params, z, key):
-  from dusty_jax import sampling, writers
   out = jax.device_get(sampling.generate(params, z, key))
   tiles = [
       [writers.inv_depth_tile(x) for x in out['scan']],
@@ -331,10 +456,6 @@ def _check_resumable(workdir: str, config):
 
 def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   """Trains from scratch or resumes from the latest checkpoint in ``workdir``."""
-  import tqdm
-  from dusty_jax import checkpoint, parallel, sensor as sensor_lib, writers
-  from dusty_jax.data import arrays, pipeline
-
   configs.validate(config)
   _check_resumable(workdir, config)
   sensor = sensor_lib.from_config(config.sensor)
@@ -374,6 +495,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   last_log = (time.time(), start)
   bar = tqdm.tqdm(total=config.num_steps, initial=start, disable=not is_main,
                   unit='step', dynamic_ncols=True, file=sys.stderr)
+  done = start
   try:
     for i in range(start, config.num_steps):
       batch = parallel.shard_batch(batches(i), mesh)
@@ -386,7 +508,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
         records = [(s, {k: float(v) for k, v in parallel.to_host(m).items()})
                    for s, m in pending]
         pending = []
-        _check_finite(done, records)
+        _check_finite(records, mngr.latest_step())
         now = time.time()
         rate = (done - last_log[1]) * config.batch_size / max(now - last_log[0], 1e-9)
         last_log = (now, done)
@@ -402,8 +524,17 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
                      ema, z_img, jax.random.key(0))
       bar.update()
+  except KeyboardInterrupt:
+    bar.close()
+    checkpoint.wait(mngr)
+    last = mngr.latest_step()
+    raise errors.Interrupted(
+        f'interrupted at step {done}; ' +
+        (f'the last checkpoint is step {last}; rerun the same command to resume'
+         if last is not None else
+         'no checkpoint was saved yet; rerun the same command to start afresh')) from None
   finally:
     bar.close()
-    mngr.wait_until_finished()
+    checkpoint.wait(mngr)
     writer.close()
   return state

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import checkpoint, generator, models, trainer
+from dusty_jax import checkpoint, configs, generator, models, trainer
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -77,7 +77,7 @@ def test_load_equals_the_trainer_state(smoke_run):
       params, _ = dusty_jax.load_checkpoint(workdir, step=step, ema=ema)
       for a, b in zip(jax.tree.leaves(params.variables), jax.tree.leaves(want)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-  assert params.settings == models.ModelSettings.from_config(config)
+  assert params.settings == configs.model_settings(config)
   assert params.tolerance == config.tolerance
 
 
@@ -150,13 +150,13 @@ def test_variables_that_do_not_fit_are_refused(smoke_run, tmp_path):
 def test_model_settings_is_one_frozen_value(tiny):
   from train_helpers import tiny_config
   c = tiny_config(model='dusty2', eqlr='fan_in', tau=0.5)
-  s = models.ModelSettings.from_config(c)
+  s = configs.model_settings(c)
   assert s == models.ModelSettings('dusty2', c.latent_dim, c.ch_base, c.ch_max,
                                    'fan_in', 0.5)
   with pytest.raises(Exception):  # frozen
     s.model = 'baseline'
   del c.eqlr  # a config from before the field: its legacy value
-  assert models.ModelSettings.from_config(c).eqlr == 'fan_in'
+  assert configs.model_settings(c).eqlr == 'fan_in'
   for bad, msg in [(dict(model='dusty3'), 'unknown model'), (dict(eqlr='x'), 'unknown eqlr'),
                    (dict(latent_dim=0), 'latent_dim=0'), (dict(tau=0.0), 'tau=0.0')]:
     with pytest.raises(ValueError, match=msg):

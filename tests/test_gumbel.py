@@ -43,9 +43,9 @@ def test_extremes_no_nan(tau):
 def test_always_dropped_pixel_renders_alpha_with_finite_grads():
   raw = jnp.zeros((2, 4, 8, 3)).at[..., 1].set(-1e4)  # measurability ~ 0.
   for model in ('dusty1', 'dusty2'):
-    out = models.compose(model, raw, jax.random.key(0))
+    out = models.get_variant(model).compose(raw, jax.random.key(0))
     assert (out['scan'] == ALPHA).all() and (out['mask'] == 0).all()
-    g = jax.grad(lambda r: models.compose(model, r, jax.random.key(0))['scan'].sum())(raw)
+    g = jax.grad(lambda r: models.get_variant(model).compose(r, jax.random.key(0))['scan'].sum())(raw)
     assert np.isfinite(np.asarray(g)).all()
 
 
@@ -62,8 +62,8 @@ def test_image_level_noise_shared_and_off_at_test():
 
 def test_dusty2_multiplies_masks_and_measurability():
   raw = jnp.zeros((1, 2, 2, 3)).at[..., 1].set(10.0).at[..., 2].set(-10.0)
-  out = models.compose('dusty2', raw, jax.random.key(0), train=False)
+  out = models.get_variant('dusty2').compose(raw, jax.random.key(0), train=False)
   assert (out['mask'] == 0).all()  # image-level says drop: everything dropped.
-  assert (models.measurability('dusty2', out['logit']) == 0).all()
-  base = models.compose('baseline', raw, jax.random.key(0))
+  assert (models.get_variant('dusty2').measurability(out['logit']) == 0).all()
+  base = models.get_variant('baseline').compose(raw, jax.random.key(0))
   np.testing.assert_allclose(base['scan'], jnp.tanh(raw[..., 0]))

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -205,7 +206,7 @@ def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
   assert any('2 of 3 input files skipped' in l for l in logs)
   assert any('b.npy' in l for l in logs) and any('c.bin' in l for l in logs)
   (tmp_path / 'a.npy').unlink()
-  with pytest.raises(ValueError, match='none of 2 input files'):
+  with pytest.raises(ValueError, match='none of 2 input files could be read'):
     scan_files.read_scans(str(tmp_path), tiny, log=logs.append)
 
 
@@ -277,3 +278,113 @@ def test_project_zero_and_tiny_vectors():
   # stay finite at zero too.
   grad = jax.grad(lambda z: inversion.project(z).sum())(jnp.zeros(d))
   assert np.isfinite(np.asarray(grad)).all()
+
+
+def test_given_start_equals_random_start_and_is_checked(gen):
+  scans, _ = _targets(gen)
+  key = jax.random.key(4)
+  keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(3))
+  z0 = inversion.random_start(gen, scans, None, keys)
+  a = inversion.invert(gen, scans, key=key, num_steps=10)
+  # Given latents off the sphere are projected: x3 is the same start.
+  b = inversion.invert(gen, scans, key=key, num_steps=10, init=3.0 * z0)
+  np.testing.assert_allclose(b['latent'], a['latent'], rtol=1e-5, atol=1e-5)
+  one = inversion.invert(gen, scans[0], key=keys[0:1], num_steps=10, init=z0[0])
+  np.testing.assert_allclose(one['latent'], a['latent'][0], rtol=1e-5, atol=1e-5)
+  with pytest.raises(ValueError, match=r'init latents of shape \(2, \d+\): expected \(3, '):
+    inversion.invert(gen, scans, num_steps=1, init=z0[:2])
+  with pytest.raises(ValueError, match=r"init='encoderr': known starts are \['random'\]"):
+    inversion.invert(gen, scans, num_steps=1, init='encoderr')
+
+
+def test_objective_and_a_replaced_loss(gen):
+  x = jnp.array([[0.5, -0.5], [0.0, 1.0]])
+  t = jnp.array([[0.0, 0.0], [0.0, 0.0]])
+  m = jnp.array([[True, True], [False, False]])
+  assert float(inversion.objective(x, t, m)) == pytest.approx(0.5)
+  assert float(inversion.objective(x, t, jnp.zeros_like(m))) == 0.0
+  # A loss with no gradient leaves the start where it was.
+  scans, _ = _targets(gen, n=2)
+  z0 = jax.random.normal(jax.random.key(8), (2, gen.latent_dim))
+  flat = lambda x_tilde, target, mask: 0.0 * jnp.sum(x_tilde)
+  out = inversion.invert(gen, scans, num_steps=5, init=z0, loss=flat)
+  np.testing.assert_allclose(out['latent'], inversion.project(z0), rtol=1e-5, atol=1e-5)
+  assert (np.asarray(out['loss']) == 0).all()
+
+
+@pytest.mark.parametrize('lr', [float('nan'), float('inf'), 0.0, -0.1])
+def test_a_learning_rate_that_cannot_work_is_refused(gen, lr):
+  """Item 9: every latent used to end at the all-ones point, silently."""
+  t = _targets(gen, n=1)[0]
+  with pytest.raises(ValueError, match=r'lr=.*must be a finite number > 0'):
+    inversion.invert(gen, t, num_steps=2, lr=lr)
+
+
+def test_empty_in_empty_out(gen):
+  """Item 13: sample(num=0) and invert of 0 scans agree: numpy's rule."""
+  h, w = gen.sensor.shape
+  out = sampling.sample(gen, jax.random.key(0), 0)
+  assert out['scan'].shape == (0, h, w) and out['points'].shape == (0, h, w, 3)
+  assert sampling.sample_scans(gen, jax.random.key(0), 0).shape == (0, h, w)
+  rec = inversion.invert(gen, np.zeros((0, h, w), np.float32), num_steps=2)
+  assert rec['inv_depth'].shape == (0, h, w) and rec['latent'].shape == (0, gen.latent_dim)
+  assert set(rec) >= set(out)
+  with pytest.raises(ValueError, match='num=-1'):
+    sampling.sample(gen, jax.random.key(0), -1)
+
+
+def _real_and_simulated_depths(sensor):
+  """Metric depth of KITTI-layout scans (unfolded from sensor-order points)
+  and of simulated ones."""
+  from conftest import random_depth, sensor_order_points
+  from dusty_jax.data import simulated_lidar, unfolding
+  real = [unfolding.unfold_scan(sensor_order_points(random_depth(sensor, seed=s), sensor,
+                                                     seed=s), sensor)[0]
+          for s in range(3)]
+  sim = [simulated_lidar.render_scan(s, sensor).depth for s in range(3)]
+  return np.stack(real), np.stack(sim)
+
+
+def test_scans_not_encoded_are_warned_about_and_real_ones_never(gen):
+  """Item 11: depth / max_depth lies inside [-1, 1] but has no value below
+  0 and no drop; genuine encoded scans always have both."""
+  import warnings
+  real, sim = _real_and_simulated_depths(gen.sensor)
+  for depth in (real, sim):
+    with warnings.catch_warnings():
+      warnings.simplefilter('error')
+      inversion.invert(gen, codec.encode(depth, gen.sensor), num_steps=2)
+      inversion.invert(gen, codec.encode(depth[0], gen.sensor), num_steps=2)
+  with pytest.warns(UserWarning, match=r'scans \[0, 1, 2\] have no value below 0 and '
+                    r'no drop.*depth / max_depth.*codec\.encode'):
+    inversion.invert(gen, sim / gen.sensor.max_depth, num_steps=2)
+  with pytest.warns(UserWarning, match=r'the scan has no value below 0'):
+    inversion.invert(gen, real[0] / gen.sensor.max_depth, num_steps=2)
+
+
+def test_invert_cli_skips_encoded_scans_given_as_metres(smoke_run, tmp_path, capsys):
+  """Item 10: the file and the reason, skipped as prepare skips; no NaN
+  table; a non-zero exit when no scan could be fitted."""
+  from dusty_jax.tools import invert as invert_tool
+  _, workdir, _ = smoke_run
+  params, _ = dusty_jax.load_checkpoint(workdir)
+  _, sim = _real_and_simulated_depths(params.sensor)
+  inp = tmp_path / 'in'
+  inp.mkdir()
+  np.save(inp / 'encoded.npy', np.asarray(codec.encode(sim[0], params.sensor)))
+  np.save(inp / 'metres.npy', sim[1])
+  invert_tool.main(['--workdir', workdir, '--input', str(inp), '--out',
+                    str(tmp_path / 'out'), '--steps', '3'])
+  out = capsys.readouterr().out
+  assert re.search(r"skipped: \S*encoded\.npy: every depth is below the sensor's "
+                   r'minimum range of [\d.]+ m', out), out
+  assert 'nan' not in out.lower() and 'protocol reference: 1 scans' in out
+  per_scan = json.load(open(tmp_path / 'out' / 'metrics.json'))['per_scan']
+  assert [r['name'] for r in per_scan] == ['metres']
+  (inp / 'metres.npy').unlink()
+  with pytest.raises(SystemExit, match='none of 1 input files could be read or holds '
+                     'a scan to fit') as e:
+    invert_tool.main(['--workdir', workdir, '--input', str(inp), '--out',
+                      str(tmp_path / 'out2'), '--steps', '3'])
+  assert e.value.code == 1
+  assert 'encoded.npy' in capsys.readouterr().out

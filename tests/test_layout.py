@@ -1,4 +1,6 @@
-"""The arrows between dusty_jax's modules run one way (STYLE.md's house).
+"""The arrows between dusty_jax's modules run one way (the house of the style
+guide at ../shared/STYLE.md, beside the repository, not in it), and a model
+variant is asked what it is, never compared by name.
 
 Every import counts, the ones inside functions too: an import deferred to
 call time is still a dependency, and a cycle of them is still a cycle.
@@ -10,6 +12,7 @@ import os
 import pytest
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'dusty_jax')
+REPO = os.path.dirname(ROOT)
 
 
 def _modules() -> dict:
@@ -119,3 +122,43 @@ def test_only_command_lines_import_command_lines():
     if name.startswith('dusty_jax.tools') or name == 'dusty_jax.train':
       continue
     assert not {d for d in deps if d.startswith('dusty_jax.tools') or d == 'dusty_jax.train'}, name
+
+
+MODEL_NAMES = {'baseline', 'dusty1', 'dusty2'}
+
+
+def _name_comparisons(path: str) -> list:
+  """Lines of ``path`` comparing something with a model name (``==``, ``!=``,
+  ``in`` a tuple of names, ...)."""
+  out = []
+  for node in ast.walk(ast.parse(open(path).read(), path)):
+    if not isinstance(node, ast.Compare):
+      continue
+    for operand in [node.left] + node.comparators:
+      consts = operand.elts if isinstance(operand, (ast.Tuple, ast.List, ast.Set)) else [operand]
+      if any(isinstance(c, ast.Constant) and c.value in MODEL_NAMES for c in consts):
+        out.append(node.lineno)
+  return out
+
+
+def _python_files(*dirs):
+  for top in dirs:
+    for d, _, files in os.walk(os.path.join(REPO, top)):
+      yield from (os.path.join(d, f) for f in files if f.endswith('.py'))
+
+
+def test_the_name_check_sees_comparisons(tmp_path):
+  p = tmp_path / 'x.py'
+  p.write_text("a = m == 'dusty2'\nb = m in ('baseline', 'x')\nc = {'dusty1': 1}\n")
+  assert _name_comparisons(str(p)) == [1, 2]
+
+
+def test_only_models_compares_model_names():
+  """Callers ask models.get_variant(name) what a variant is (its heads,
+  whether it has a measurability, ...), so a new variant touches models.py,
+  a config and tests."""
+  models_py = os.path.join(ROOT, 'models.py')
+  bad = {os.path.relpath(p, REPO): lines
+         for p in _python_files('dusty_jax', 'benchmarks', 'experiments')
+         if p != models_py and (lines := _name_comparisons(p))}
+  assert not bad, f'model names compared outside models.py: {bad}'

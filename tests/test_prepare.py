@@ -1,6 +1,7 @@
 """Readers and the prepare CLI on small folders written in the real layouts."""
 
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -129,3 +130,84 @@ def test_prepare_removes_stale_splits_and_skips_junk(kitti, tmp_path):
   assert any('removed the old' in l for l in logs)
   assert all('valid pixels' in s['reason'] and 'not a full LiDAR scan' in s['reason']
              for s in meta['skipped']['val'])
+
+
+def test_prepare_creates_nothing_before_its_inputs_check(kitti, tmp_path):
+  """Item 12: no empty --out from a root without sequences/ or scans."""
+  out = tmp_path / 'out'
+  (tmp_path / 'nosequences').mkdir()
+  with pytest.raises(FileNotFoundError, match='sequences: no such directory'):
+    prepare.prepare('kitti', str(tmp_path / 'nosequences'), str(out))
+  assert not out.exists()
+  os.makedirs(tmp_path / 'noscans' / 'sequences' / '00' / 'velodyne')
+  with pytest.raises(FileNotFoundError, match='no kitti scan files'):
+    prepare.prepare('kitti', str(tmp_path / 'noscans'), str(out))
+  assert not out.exists()
+  with pytest.raises(SystemExit, match='sequences: no such directory'):
+    prepare_tool.main(['--dataset', 'kitti', '--root', str(tmp_path / 'nosequences'),
+                       '--out', str(out)])
+  assert not out.exists()
+
+
+def test_meta_describes_every_array_beside_it(kitti, tmp_path):
+  """Item 12: preparing one split keeps the others in meta.json."""
+  root, out = str(tmp_path / 'kitti'), str(tmp_path / 'out')
+  _kitti_tree(root, kitti, seqs=(('00', 2), ('08', 1), ('11', 3)))
+  prepare.prepare('kitti', root, out, log=lambda m: None)
+  first = arrays.read_meta(out)
+  kitti_io.write_bin(os.path.join(root, 'sequences', '01', 'velodyne', '000000.bin'),
+                     sensor_order_points(random_depth(kitti, seed=9), kitti))
+  meta = prepare.prepare('kitti', root, out, splits=('train',), log=lambda m: None)
+  assert meta == arrays.read_meta(out)
+  assert meta['splits'] == {'train': 3, 'val': 1, 'test': 3}
+  assert meta['skipped'] == first['skipped']
+  for split, n in meta['splits'].items():
+    assert len(arrays.load_split(out, split, kitti)) == n
+  # Arrays of another sensor beside the split asked for: refused, untouched.
+  np.save(arrays.split_path(out, 'val'), np.zeros((1, 32, 256), np.float32))
+  with pytest.raises(ValueError, match=r'already holds val\.npy of shape \(1, 32, 256\)'):
+    prepare.prepare('kitti', root, out, splits=('train',), log=lambda m: None)
+  assert arrays.read_meta(out) == meta
+
+
+def test_splits_are_written_scan_by_scan(kitti, tmp_path):
+  """Item 14: the array is the stacked scans, and the Python heap's peak
+  while preparing does not grow with the number of scans (the old code
+  held the split, then stacked it: 2 x 64 KB more per scan)."""
+  import tracemalloc
+  one = tmp_path / 'one.bin'
+  kitti_io.write_bin(str(one), sensor_order_points(random_depth(kitti, seed=3), kitti))
+  want = kitti_io.load_scan(str(one), kitti)[0]
+  peaks = {}
+  for n in (2, 20):
+    root = tmp_path / f'n{n}'
+    velodyne = root / 'sequences' / '00' / 'velodyne'
+    velodyne.mkdir(parents=True)
+    for i in range(n):
+      shutil.copy(one, velodyne / f'{i:06d}.bin')
+    out = str(tmp_path / f'out{n}')
+    tracemalloc.start()
+    prepare.prepare('kitti', str(root), out, splits=('train',), log=lambda m: None)
+    peaks[n] = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    train = arrays.load_split(out, 'train', kitti)
+    assert train.shape == (n, 64, 256)
+    np.testing.assert_array_equal(np.asarray(train), np.broadcast_to(want, train.shape))
+    assert not [f for f in os.listdir(out) if 'tmp' in f]
+  assert peaks[20] - peaks[2] < 18 * 64 * 1024, peaks
+
+
+def test_split_writer_header_and_abort(tmp_path):
+  path = str(tmp_path / 'x.npy')
+  w = arrays.SplitWriter(path, 1000, (3, 5))
+  rows = np.arange(7 * 15, dtype=np.float32).reshape(7, 3, 5)
+  for r in rows:
+    w.append(r)
+  assert w.close() == 7
+  np.testing.assert_array_equal(np.load(path), rows)
+  assert os.path.getsize(path) == w.offset + rows.nbytes
+  w = arrays.SplitWriter(path, 2, (3, 5))
+  w.append(rows[0])
+  w.abort()
+  np.testing.assert_array_equal(np.load(path), rows)  # the old file stays
+  assert os.listdir(tmp_path) == ['x.npy']

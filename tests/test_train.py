@@ -3,6 +3,7 @@
 import json
 import shutil
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -141,7 +142,9 @@ def test_nan_stops_training_keeping_last_good_checkpoint(smoke_run, tmp_path):
   trainer.train_and_evaluate(config, other, log=lambda m: None)
   config.num_steps = 6
   config.lr = 1e38  # from step 3 on, updates overflow float32: inf, then NaN.
-  with pytest.raises(trainer.NonFiniteLossError, match='non-finite training metrics'):
+  with pytest.raises(trainer.NonFiniteLossError, match=(
+      r'non-finite training metrics at step \d+: .*the last checkpoint, step 2, is '
+      'kept and a rerun resumes from it')):
     trainer.train_and_evaluate(config, other, log=lambda m: None)
   assert sorted(os.listdir(os.path.join(other, 'checkpoints'))) == ['2']
 
@@ -259,3 +262,92 @@ def test_damaged_latest_checkpoint_falls_back(smoke_run, tmp_path, damage):
   assert any('step 4' in m and 'does not restore' in m for m in messages)
   assert any('resumed from step 2' in m for m in messages)
   assert dusty_jax.load_checkpoint(str(copy))[0] is not None
+
+
+def _damaged_copy(workdir, dest, damage):
+  shutil.copytree(workdir, dest)
+  latest = dest / 'checkpoints' / '4'
+  if damage == 'empty':
+    shutil.rmtree(latest)
+    latest.mkdir()
+  elif damage == 'metadata':
+    (latest / '_CHECKPOINT_METADATA').unlink()
+    for p in latest.rglob('_METADATA'):
+      p.unlink()
+  else:  # every array data file cut to 30%: many reads fail at once.
+    for p in latest.rglob('*'):
+      if p.is_file() and p.parent.name == 'd' and p.stat().st_size > 512:
+        p.write_bytes(p.read_bytes()[:int(p.stat().st_size * 0.3)])
+  return dest
+
+
+LOAD_AND_RESUME = '''
+import sys
+import jax
+import dusty_jax
+from dusty_jax import checkpoint, configs, sensor, trainer
+for name in sys.argv[1:]:
+  print('--- load ' + name, file=sys.stderr, flush=True)
+  dusty_jax.load_checkpoint(name)
+  print('--- resume ' + name, file=sys.stderr, flush=True)
+  config = configs.load(name)
+  setup = trainer.make_setup(config, sensor.from_config(config.sensor))
+  state = trainer.init_state(setup, jax.random.key(0))
+  checkpoint.restore_latest(checkpoint.manager(name), state)
+print('--- end', file=sys.stderr, flush=True)
+'''
+
+
+def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, tmp_path):
+  """Items 4 and 5: per skipped step one warning with a reason a person can
+  act on, then the step loaded, and nothing else on stderr (no asyncio or
+  TensorStore noise, no orbax warning per load); an intact run loads in
+  silence."""
+  _, workdir, _ = smoke_run
+  runs = [str(workdir)] + [str(_damaged_copy(workdir, tmp_path / d, d))
+                           for d in ('truncate', 'metadata', 'empty')]
+  env = dict(os.environ)
+  env.pop('XLA_FLAGS', None)
+  res = subprocess.run([sys.executable, '-c', LOAD_AND_RESUME] + runs, env=env,
+                       capture_output=True, text=True, timeout=600,
+                       cwd=os.path.join(HERE, '..'))
+  assert res.returncode == 0, res.stderr[-3000:]
+  blocks, name = {}, None
+  for line in res.stderr.splitlines():
+    if line.startswith('--- '):
+      name = line[4:]
+      blocks[name] = []
+    else:
+      blocks[name].append(line)
+  assert blocks.pop('end') == []
+  assert blocks.pop(f'load {runs[0]}') == [] and blocks.pop(f'resume {runs[0]}') == []
+  reasons = {'truncate': 'data file truncated', 'metadata': 'metadata missing',
+             'empty': 'empty step directory'}
+  for run, damage in zip(runs[1:], ('truncate', 'metadata', 'empty')):
+    d = os.path.join(run, 'checkpoints')
+    want = [f'warning: checkpoint step 4 in {d} does not restore ({reasons[damage]}); '
+            'trying the previous one', f'loaded checkpoint step 2 from {d}']
+    assert blocks[f'load {run}'] == want, res.stderr[-3000:]
+    assert blocks[f'resume {run}'] == want, res.stderr[-3000:]
+
+
+def test_nan_before_any_checkpoint_says_a_rerun_starts_afresh(smoke_run, tmp_path):
+  """Item 7: no checkpoint exists yet, so none is 'kept'."""
+  config, _, _ = smoke_run
+  config = config.copy_and_resolve_references()
+  config.num_steps, config.checkpoint_every, config.log_every = 6, 5, 1
+  config.lr = 1e38
+  with pytest.raises(trainer.NonFiniteLossError,
+                     match=r'no checkpoint was saved yet, so a rerun starts afresh'):
+    trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
+  assert not os.listdir(tmp_path / 'w' / 'checkpoints')
+
+
+def test_a_run_file_given_for_a_checkpoint_names_its_directory(smoke_run):
+  """Item 8: config.json is not 'not a torch.save checkpoint'."""
+  _, workdir, _ = smoke_run
+  for name, what in (('config.json', 'config'), ('generator.json', 'generator description')):
+    with pytest.raises(ValueError, match=(
+        rf"{name}: a training run's {what} file, not a checkpoint; pass its "
+        rf'directory, {re.escape(os.path.abspath(workdir))}')):
+      dusty_jax.load_checkpoint(os.path.join(workdir, name))

@@ -16,7 +16,8 @@ import os
 
 import numpy as np
 
-from dusty_jax.sensor import SensorSpec
+from dusty_jax.errors import DataError
+from dusty_jax.sensor import SensorSpec, check_angles
 
 ANGLES = 'angles.npy'
 META = 'meta.json'
@@ -29,7 +30,7 @@ def split_path(directory: str, split: str, kind: str = '') -> str:
 def _check_shape(path, arr, sensor, lead):
   want = sensor.shape
   if arr.ndim != lead + 2 or tuple(arr.shape[-2:]) != want:
-    raise ValueError(f'{path}: array of shape {arr.shape} does not match sensor '
+    raise DataError(f'{path}: array of shape {arr.shape} does not match sensor '
                      f'{sensor.name!r} (expected (..., {want[0]}, {want[1]}))')
 
 
@@ -45,7 +46,7 @@ def load_split(directory: str, split: str, sensor: SensorSpec,
   arr = np.load(path, mmap_mode='r')
   _check_shape(path, arr, sensor, lead=1)
   if arr.shape[0] == 0:
-    raise ValueError(f'{path}: the split holds no scans')
+    raise DataError(f'{path}: the split holds no scans')
   return arr
 
 
@@ -55,9 +56,10 @@ def load_angles(directory: str, sensor: SensorSpec) -> np.ndarray:
   if not os.path.isfile(path):
     return sensor.nominal_angles()
   arr = np.load(path)
-  _check_shape(path, arr, sensor, lead=1)
-  if arr.shape[0] != 2 or not np.isfinite(arr).all():
-    raise ValueError(f'{path}: expected finite (2, H, W) elevation/azimuth')
+  try:
+    check_angles(arr, sensor.shape, f'{path}: ', finite=True)
+  except ValueError as e:
+    raise DataError(str(e)) from None
   return arr.astype(np.float32)
 
 
@@ -92,3 +94,64 @@ def save_array(path: str, arr: np.ndarray):
   tmp = path + '.tmp.npy'
   np.save(tmp, np.ascontiguousarray(arr))
   os.replace(tmp, path)
+
+
+class SplitWriter:
+  """Writes an (N, H, W) float32 split scan by scan, so memory does not grow
+  with N: at most ``capacity`` scans, into a temporary .npy (header from
+  ``np.lib.format.open_memmap``, rows appended with plain writes, which keep
+  nothing resident), then :meth:`close` sets the header to the scans
+  written, cuts the file there and moves it into place atomically.
+  """
+
+  def __init__(self, path: str, capacity: int, shape):
+    self.path, self.tmp = path, path + '.tmp.npy'
+    self.shape, self.count = tuple(shape), 0
+    self.capacity = capacity
+    np.lib.format.open_memmap(self.tmp, mode='w+', dtype=np.float32,
+                              shape=(capacity,) + self.shape).flush()
+    with open(self.tmp, 'rb') as f:
+      np.lib.format.read_magic(f)
+      np.lib.format.read_array_header_1_0(f)
+      self.offset = f.tell()
+    self.file = open(self.tmp, 'r+b')
+    self.file.seek(self.offset)
+
+  def append(self, scan: np.ndarray):
+    if self.count == self.capacity:
+      raise ValueError(f'{self.path}: more than the {self.capacity} scans announced')
+    scan = np.ascontiguousarray(scan, np.float32)
+    if scan.shape != self.shape:
+      raise ValueError(f'scan of shape {scan.shape}, expected {self.shape}')
+    self.file.write(scan.tobytes())
+    self.count += 1
+
+  def close(self) -> int:
+    """Finishes the file (when any scan was written; else removes it) and
+    returns the number of scans."""
+    header = _npy_header((self.count,) + self.shape, self.offset)
+    self.file.seek(0)
+    self.file.write(header)
+    self.file.truncate(self.offset + self.count * int(np.prod(self.shape)) * 4)
+    self.file.close()
+    if self.count:
+      os.replace(self.tmp, self.path)
+    else:
+      os.remove(self.tmp)
+    return self.count
+
+  def abort(self):
+    self.file.close()
+    if os.path.exists(self.tmp):
+      os.remove(self.tmp)
+
+
+def _npy_header(shape, length: int) -> bytes:
+  """A version 1.0 .npy header of float32 ``shape``, padded with spaces to
+  ``length`` bytes (the data after it stays where it is)."""
+  d = repr({'descr': '<f4', 'fortran_order': False, 'shape': tuple(shape)})
+  body_len = length - 10  # magic (6), version (2), header length (2)
+  if len(d) + 1 > body_len:
+    raise ValueError(f'a header for shape {shape} does not fit in {length} bytes')
+  body = (d + ' ' * (body_len - len(d) - 1) + '\n').encode('latin1')
+  return b'\x93NUMPY\x01\x00' + body_len.to_bytes(2, 'little') + body

@@ -7,15 +7,37 @@ import os
 import numpy as np
 
 from dusty_jax.data import kitti
+from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
+
+
+def no_return_reason(depth: np.ndarray, sensor: SensorSpec) -> str | None:
+  """Why a metric depth scan has no pixel inside the sensor's range (so
+  there is nothing to fit), or None."""
+  finite = depth[np.isfinite(depth)]
+  inside = (finite > sensor.min_depth) & (finite < sensor.max_depth)
+  if inside.any():
+    return None
+  returns = finite[finite != 0]
+  if not returns.size:
+    return 'no return: every depth is 0 or not finite'
+  lo, hi = float(returns.min()), float(returns.max())
+  if hi <= sensor.min_depth:
+    return (f'every depth is below the sensor\'s minimum range of {sensor.min_depth} m '
+            f'(values in [{lo:.3g}, {hi:.3g}]): normalised or already encoded '
+            'scans given as metres? The input takes metric depth')
+  return (f'no depth inside the sensor\'s range ({sensor.min_depth}, '
+          f'{sensor.max_depth}) m (values in [{lo:.3g}, {hi:.3g}])')
 
 
 def read_scans(path: str, sensor: SensorSpec, log=print):
   """[(name, metric depth (H, W))] from a file or a directory of files.
 
   ``.bin`` files are unfolded with the sensor; ``.npy`` files hold metric
-  depth (H, W) or (N, H, W). A file that cannot be read is reported and
-  skipped (and counted), as prepare does; only no readable file fails.
+  depth (H, W) or (N, H, W). A file that cannot be read, or a scan with no
+  depth inside the sensor's range (nothing to fit: e.g. encoded scans given
+  as metres), is reported with its file and skipped (and counted), as
+  prepare does; only no usable scan at all fails.
   """
   if os.path.isdir(path):
     files = sorted(os.path.join(path, f) for f in os.listdir(path)
@@ -26,28 +48,37 @@ def read_scans(path: str, sensor: SensorSpec, log=print):
     files = [path]
   else:
     raise FileNotFoundError(f'{path}: no such file or directory')
-  out, skipped = [], []
+  out, skipped, bad_files = [], [], 0
   for f in files:
     stem = os.path.splitext(os.path.basename(f))[0]
     try:
       if f.endswith('.bin'):
         depth, _ = kitti.load_scan(f, sensor)
-        out.append((stem, depth))
-        continue
-      arr = np.load(f, allow_pickle=False)
-      if arr.shape[-2:] != sensor.shape or arr.ndim not in (2, 3):
-        raise ValueError(f'{f}: expected metric depth of shape (H, W) or '
-                         f'(N, H, W) with H, W = {sensor.shape}, got {arr.shape}')
+        scans = [(stem, f, depth)]
+      else:
+        arr = np.load(f, allow_pickle=False)
+        if arr.shape[-2:] != sensor.shape or arr.ndim not in (2, 3):
+          raise ValueError(f'{f}: expected metric depth of shape (H, W) or '
+                           f'(N, H, W) with H, W = {sensor.shape}, got {arr.shape}')
+        scans = ([(stem, f, arr)] if arr.ndim == 2 else
+                 [(f'{stem}_{i:05d}', f'{f}[{i}]', a) for i, a in enumerate(arr)])
     except (ValueError, OSError) as e:
       skipped.append((f, str(e)))
+      bad_files += 1
       log(f'skipped: {e}')
       continue
-    if arr.ndim == 2:
-      out.append((stem, arr))
-    else:
-      out += [(f'{stem}_{i:05d}', a) for i, a in enumerate(arr)]
+    for name, where, depth in scans:
+      reason = no_return_reason(np.asarray(depth), sensor)
+      if reason:
+        skipped.append((where, reason))
+        log(f'skipped: {where}: {reason}')
+      else:
+        out.append((name, depth))
   if not out:
-    raise ValueError(f'{path}: none of {len(files)} input files could be read')
-  if skipped:
-    log(f'{len(skipped)} of {len(files)} input files skipped')
+    raise DataError(f'{path}: none of {len(files)} input files could be read or '
+                    'holds a scan to fit (see the reasons above)')
+  if bad_files:
+    log(f'{bad_files} of {len(files)} input files skipped')
+  if len(skipped) > bad_files:
+    log(f'{len(skipped) - bad_files} scans without a return in range skipped')
   return out

@@ -74,8 +74,12 @@ def completion(sensor, inv_depth, complete, region, renders_drop=None):
   return errors, float(covered.sum() / max(region.sum(), 1))
 
 
+NEAR_M = 40.0  # 'near' surfaces: where a drop is visible in inverse depth.
+
+
 def disentanglement(sensor, inv_depth, measurability, observed, complete,
-                    drop_prob, renders_drop=None, bins: int = 10) -> dict:
+                    drop_prob, renders_drop=None, bins: int = 10,
+                    near: float = NEAR_M) -> dict:
   """Scores an inversion against ground truth.
 
   Args:
@@ -90,13 +94,15 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
 
   Returns:
     dict with ``completion`` and ``fit`` (MAE in metres, AbsRel, pixels),
-    ``coverage``, and ``measurability`` scores (ECE, Brier, AUC; all pixels
-    and surface pixels) with the reliability curve.
+    ``coverage``, and ``measurability`` scores (ECE, Brier, AUC; all pixels,
+    surface pixels, and surfaces nearer than ``near`` metres) with the
+    reliability curve.
   """
   observed = np.asarray(observed, np.float64)
   complete = np.asarray(complete, np.float64)
   valid_obs = np.asarray(codec.valid_depth(observed, sensor))
   surface = np.asarray(codec.valid_depth(complete, sensor))
+  near_surface = surface & (complete < near)
   filled, coverage = completion(sensor, inv_depth, complete, surface & ~valid_obs,
                                 renders_drop)
   pred = np.asarray(codec.complete_depth(inv_depth, sensor), np.float64)
@@ -116,6 +122,9 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
           'brier_surface': float(np.mean(np.square(m - returned)[surface])),
           'auc': roc_auc(m, valid_obs),
           'auc_surface': roc_auc(m[surface], valid_obs[surface]),
+          'auc_near': roc_auc(m[near_surface], valid_obs[near_surface]),
+          'ece_near': calibration.reliability(m, truth, bins=bins,
+                                              mask=near_surface)['ece'],
           'reliability': {k: np.asarray(v).tolist() for k, v in cal.items()
                           if k != 'ece'},
       },

@@ -25,17 +25,14 @@ through the angle table (as their generated clouds are).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import importlib.metadata
-import os
-import re
 
 import jax
 import numpy as np
 
 from dusty_jax.metrics import chamfer, clouds, point_sets, swd
 from dusty_jax.metrics.clouds import PROTOCOLS, check_protocol
-from dusty_jax.sensor import SensorSpec, tiny_sensor
+from dusty_jax.sensor import SensorSpec, check_angles, tiny_sensor
 
 ROW_SCALES = (('jsd', 'JSD x1e2', 1e2), ('cov', 'COV %', 1e2),
               ('mmd', 'MMD x1e3', 1e3), ('1nna', '1-NNA %', 1e2),
@@ -127,9 +124,7 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
   if sensor is None:
     sensor = default_sensor(*real.shape[1:])
   angles = np.asarray(angles, np.float32)
-  if angles.shape != (2,) + real.shape[1:]:
-    raise ValueError(f'angles of shape {angles.shape} do not match scans of '
-                     f'shape {real.shape[1:]}')
+  check_angles(angles, real.shape[1:], 'scans and ')
   cache = {} if cache is None else cache
   fp = _fingerprint(real, protocol, num_points, sensor)
   if cache and cache.get('fingerprint') != fp:
@@ -152,19 +147,9 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
   }
 
 
-@functools.lru_cache(maxsize=1)
 def version() -> str:
-  """dusty_jax's version: its source tree's pyproject.toml when run from
-  one, else the installed distribution's."""
-  root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-  try:
-    with open(os.path.join(root, 'pyproject.toml')) as f:
-      text = f.read()
-    m = re.search(r'^version\s*=\s*"([^"]+)"', text, re.M)
-    if m and re.search(r'^name\s*=\s*"dusty_jax"', text, re.M):
-      return m.group(1)
-  except OSError:
-    pass
+  """dusty_jax's installed version (an editable install's is its
+  pyproject.toml's at install time)."""
   try:
     return importlib.metadata.version('dusty_jax')
   except importlib.metadata.PackageNotFoundError:

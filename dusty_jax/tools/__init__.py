@@ -19,29 +19,18 @@ import sys
 
 from absl import flags
 
-# What a tool reports as a one-line error instead of a traceback.
-USER_ERRORS = (ValueError, KeyError, FileNotFoundError, FileExistsError, ImportError)
+from dusty_jax import cli
+from dusty_jax.cli import run  # noqa: F401  (the one place errors become a line)
 
 
 def parse(values: flags.FlagValues, argv, doc: str) -> None:
   """Parses ``argv`` (without the program name; None: sys.argv) into
-  ``values``; prints ``doc`` and the flags for --help."""
+  ``values``; prints ``doc`` and the flags for --help. A bad flag is one
+  line and exit 2."""
   args = list(sys.argv[1:] if argv is None else argv)
   if any(a in ('-h', '--help', '-help', '--helpfull') for a in args):
     print(doc.strip() + '\n\nflags:\n' + values.get_help())
     raise SystemExit(0)
-  try:
-    rest = values(['tool'] + args)
-  except flags.Error as e:
-    raise SystemExit(f'error: {e} (see --help)') from None
+  rest = cli.parse_flags(['tool'] + args, values, config=None)
   if len(rest) > 1:
-    raise SystemExit(f'error: unexpected arguments {rest[1:]} (see --help)')
-
-
-def run(fn, *args):
-  """Calls ``fn``; a user's mistake exits with ``error: ...``, one line."""
-  try:
-    return fn(*args)
-  except USER_ERRORS as e:
-    msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-    raise SystemExit(f'error: {msg}') from None
+    cli.fail(f'unexpected arguments {rest[1:]} (see --help)', cli.USAGE)

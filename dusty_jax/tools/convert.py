@@ -19,7 +19,6 @@ anew. Nothing of torch is needed (see dusty_jax/authors.py).
 from __future__ import annotations
 
 import os
-import pickle
 
 from absl import flags
 
@@ -62,10 +61,7 @@ def main(argv=None):
   flags.DEFINE_string('workdir', None, 'the run directory to write', flag_values=f,
                       required=True)
   tools.parse(f, argv, __doc__)
-  try:
-    tools.run(convert, f.pth, f.workdir, f.config, f.ema, f.angles, f.data_dir)
-  except pickle.UnpicklingError as e:
-    raise SystemExit(f'error: {e}') from None
+  tools.run(convert, f.pth, f.workdir, f.config, f.ema, f.angles, f.data_dir)
   print(f'wrote {f.workdir}')
   if not f.data_dir:
     print('note: no --data_dir: evaluate and invert --split will use simulated scans')

@@ -76,7 +76,7 @@ def run(a):
     print(f'note: the test subset has {n} scans; evaluating {n} per set')
   tol = a.tolerance if a.tolerance is not None else params.tolerance
   if a.tune:
-    if params.model != 'baseline':
+    if params.variant.has_measurability:
       raise ValueError('--tune is for the baseline; DUSty needs no tolerance')
     val = arrays.load_split(d, 'val', sensor)
     val = np.asarray(codec.encode(val[protocol.subset(len(val), a.num, a.protocol)],

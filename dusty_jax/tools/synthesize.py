@@ -38,9 +38,9 @@ def main(argv=None):
   small = max(f.num // 10, 1)
   splits = {'train': f.num, 'val': small if f.val is None else f.val,
             'test': small if f.test is None else f.test}
-  meta = synthetic.write_dataset(f.out, sensor, f.num, f.seed,
-                                 {k: v for k, v in splits.items() if v > 0},
-                                 bins=f.bins, workers=f.workers)
+  meta = tools.run(lambda: synthetic.write_dataset(
+      f.out, sensor, f.num, f.seed, {k: v for k, v in splits.items() if v > 0},
+      bins=f.bins, workers=f.workers))
   print(f'wrote {meta["splits"]} scans of {sensor.name} '
         f'{sensor.height}x{sensor.width} to {f.out} '
         f'(preview: {os.path.join(f.out, "preview.png")})')

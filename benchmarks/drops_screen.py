@@ -1,0 +1,249 @@
+"""Screening the point-drop mechanisms: short DUSty-I trainings, side by side.
+
+    python benchmarks/drops_screen.py --workdir runs/screen [--steps 600]
+        [--variants authors,rate,...] [--out benchmarks/results]
+
+Each variant is the study's CPU-scale DUSty-I (experiments/study_dusty1.py)
+with some of the ``drops`` options of dusty_jax/configs.py set (VARIANTS
+below), trained for ``--steps`` (resumable: a rerun continues, or only
+evaluates what is done). For each it reports, over training:
+  * the drop rate of the generated scans, and D's mean logits (metrics.jsonl);
+  * the correlation of the EMA generator's per-ring drop rate (64 samples)
+    with the training data's, at every kept checkpoint: a cheap signal of
+    *where* the drops go, not only how many;
+and at the end, on held-out simulated test scans inverted by the EMA
+generator, the measurability against the simulator's truth: ROC AUC against
+the observed drops on surfaces nearer than 40 m (the target: > 0.75), on all
+surfaces, ECE, and the completion / fit errors.
+
+Writes ``drops_screen.json`` and ``drops_screen.png`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+import common
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+KEEP_RATE_LOGIT = 1.386  # logit(0.8): the simulated scans keep ~80% of pixels.
+
+VARIANTS = {
+    'authors': {},
+    'rate': {'rate_weight': 10.0},
+    'rate_bias': {'rate_weight': 10.0, 'mask_bias': KEEP_RATE_LOGIT},
+    'ring_rate_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
+                       'mask_bias': KEEP_RATE_LOGIT},
+    'keep_drops_bias': {'keep_drops': True, 'mask_bias': KEEP_RATE_LOGIT},
+    'mask_channel': {'mask_channel': 1.0, 'mask_noise': 0.1, 'mask_dropout': 0.5},
+    'slow_mask_bias': {'mask_lr': 0.1, 'mask_bias': KEEP_RATE_LOGIT},
+    'channel_keep_rate': {'mask_channel': 0.5, 'mask_noise': 0.1, 'mask_dropout': 0.5,
+                          'keep_drops': True, 'rate_weight': 10.0,
+                          'mask_bias': KEEP_RATE_LOGIT},
+    'rate1_bias': {'rate_weight': 1.0, 'mask_bias': KEEP_RATE_LOGIT},
+    'rate100_bias': {'rate_weight': 100.0, 'mask_bias': KEEP_RATE_LOGIT},
+    'channel_rate_bias': {'mask_channel': 1.0, 'mask_noise': 0.1, 'mask_dropout': 0.5,
+                          'rate_weight': 10.0, 'mask_bias': KEEP_RATE_LOGIT},
+    'keep_rate_bias': {'keep_drops': True, 'rate_weight': 10.0,
+                       'mask_bias': KEEP_RATE_LOGIT},
+    'dusty2_rate_bias': {'model': 'dusty2', 'rate_weight': 10.0,
+                         'mask_bias': KEEP_RATE_LOGIT},
+    'dusty2_authors': {'model': 'dusty2'},
+}
+
+
+def config_of(variant: str, steps: int, every: int, data_dir: str = ''):
+  from dusty_jax import configs
+  options = dict(VARIANTS[variant])
+  c = configs.study(options.pop('model', 'dusty1'))
+  c.drops.update(options)
+  c.data.dir = data_dir
+  c.num_steps = steps
+  c.log_every = 10
+  c.checkpoint_every = every
+  c.keep_checkpoints = steps // every + 1
+  c.image_every = steps
+  return c
+
+
+def ring_drop_rate(scans) -> np.ndarray:
+  from dusty_jax.codec import ALPHA
+  return (np.asarray(scans) <= ALPHA).mean(axis=(0, 2))
+
+
+def curves(workdir: str, real_rings, num: int = 64) -> dict:
+  """Training metrics and, per kept checkpoint, the EMA's ring correlation."""
+  import jax
+  from dusty_jax import checkpoint, generator, sampling
+  recs = {}
+  with open(os.path.join(workdir, 'metrics.jsonl')) as f:
+    for line in f:
+      m = json.loads(line)
+      recs[m['step']] = m
+  steps = sorted(recs)
+  out = {k: [recs[s][k] for s in steps] for k in ('drop_rate', 'real_drop_rate',
+                                                  'd_real', 'd_fake')}
+  out['step'] = steps
+  mngr = checkpoint.manager(workdir, keep=1000)
+  out['ring_step'], out['ring_corr'], out['ema_drop_rate'] = [], [], []
+  for s in sorted(mngr.all_steps()):
+    if s == 0:
+      continue
+    params, _ = generator.load(workdir, step=s, log=lambda *_: None)
+    scans = sampling.sample_scans(params, jax.random.key(7), num)
+    rings = ring_drop_rate(scans)
+    out['ring_step'].append(int(s))
+    out['ring_corr'].append(float(np.corrcoef(rings, real_rings)[0, 1])
+                            if rings.std() > 0 else float('nan'))
+    out['ema_drop_rate'].append(float(rings.mean()))
+  return out
+
+
+def evaluate(workdir: str, split, num: int, steps: int) -> dict:
+  """Disentanglement of held-out test scans inverted by the EMA generator."""
+  import jax
+  from dusty_jax import codec, generator, inversion
+  from dusty_jax.metrics import ground_truth
+  params, _ = generator.load(workdir, log=lambda *_: None)
+  idx = np.arange(num)
+  obs, comp, prob = (np.asarray(split('test', k)[idx]) for k in
+                     ('', 'complete', 'drop_prob'))
+  keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(0), i))(idx)
+  res = inversion.invert(params, np.asarray(codec.encode(obs, params.sensor)),
+                         key=keys, num_steps=steps)
+  out = ground_truth.disentanglement(params.sensor, np.asarray(res['inv_depth']),
+                                     np.asarray(res['measurability']), obs, comp, prob)
+  out['measurability'].pop('reliability')
+  return out
+
+
+def plot(results: dict, real_rate: float, path: str, title: str):
+  plt = common.pyplot()
+  fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+  for name, r in results.items():
+    c = r['curves']
+    axes[0].plot(c['step'], c['drop_rate'], label=name, lw=1)
+    axes[1].plot(c['ring_step'], c['ring_corr'], marker='o', ms=3, label=name)
+    line, = axes[2].plot(c['step'], c['d_real'], lw=1, label=name)
+    axes[2].plot(c['step'], c['d_fake'], lw=1, ls='--', color=line.get_color())
+  axes[0].axhline(real_rate, color='k', ls=':', label='real scans')
+  axes[0].set_ylabel('drop rate of generated scans (G, training batch)')
+  axes[1].set_ylabel("corr. of EMA's per-ring drop rate with the data's")
+  axes[2].set_ylabel('D logits: real (solid), fake (dashed)')
+  for ax in axes:
+    ax.set_xlabel('training step (batch 16)')
+  axes[0].set_yscale('log')
+  axes[0].legend(fontsize=7)
+  fig.suptitle(title)
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+
+
+def merge(a):
+  """Writes one plot and JSON of earlier screens' results (--merge) or of
+  run directories' training curves (--runs)."""
+  results, sources = {}, []
+  for path in [p for p in a.merge.split(',') if p]:
+    with open(path) as f:
+      r = json.load(f)
+    for name, v in r['results'].items():
+      results[f'{name} ({r["steps"]} steps)' if name in results else name] = \
+          dict(v, steps=r['steps'])
+    sources.append(dict(file=os.path.basename(path), steps=r['steps'],
+                        machine=r['machine']['banner']))
+  for item in [r for r in a.runs.split(',') if r]:
+    name, run = item.split('=', 1)
+    c = {k: [] for k in ('step', 'drop_rate', 'real_drop_rate', 'd_real', 'd_fake')}
+    with open(os.path.join(run, 'metrics.jsonl')) as f:
+      for line in f:
+        m = json.loads(line)
+        for k in c:
+          c[k].append(m[k])
+    c.update(ring_step=[], ring_corr=[])
+    results[name] = {'curves': c, 'steps': c['step'][-1]}
+  real_rate = float(np.mean(next(iter(results.values()))['curves']['real_drop_rate']))
+  os.makedirs(a.out, exist_ok=True)
+  plot(results, real_rate, os.path.join(a.out, f'{a.name}.png'), a.title)
+  common.write_json(os.path.join(a.out, f'{a.name}.json'),
+                    dict(sources=sources, results=results))
+  for name, r in results.items():
+    c = r['curves']
+    print(f'{name:28s} {c["step"][-1]:6d} steps: drop rate end {c["drop_rate"][-1]:.4f}, '
+          f'min after 500 {min([d for s, d in zip(c["step"], c["drop_rate"]) if s > 500] or [float("nan")]):.4f}')
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument('--workdir', default='runs/screen')
+  p.add_argument('--out', default=os.path.join(HERE, 'results'))
+  p.add_argument('--name', default='drops_screen', help='result file stem')
+  p.add_argument('--variants', default=','.join(VARIANTS))
+  p.add_argument('--steps', type=int, default=600)
+  p.add_argument('--every', type=int, default=100, help='checkpoint interval')
+  p.add_argument('--num-invert', type=int, default=16)
+  p.add_argument('--invert-steps', type=int, default=200)
+  p.add_argument('--train-only', action='store_true')
+  p.add_argument('--data-dir', default='', help="prepared scans ('': the study's simulated ones)")
+  p.add_argument('--title', default='DUSty-I at the CPU scale: point-drop mechanisms')
+  p.add_argument('--merge', default='',
+                 help='comma-separated result JSONs of earlier screens: plot and '
+                      'write them together (no training)')
+  p.add_argument('--runs', default='',
+                 help='NAME=RUN_DIR,...: plot the drop-rate curves of these '
+                      'training runs (no training; e.g. a run on another machine)')
+  a = p.parse_args(argv)
+  if a.merge or a.runs:
+    return merge(a)
+  from dusty_jax import codec, sensor as sensor_lib, trainer
+  from dusty_jax.data import arrays, pipeline
+  common.print_banner()
+  names = [v for v in a.variants.split(',') if v]
+  for v in names:
+    if v not in VARIANTS:
+      sys.exit(f'error: unknown variant {v!r}; known: {", ".join(VARIANTS)}')
+  results = {}
+  for v in names:
+    config = config_of(v, a.steps, a.every, a.data_dir)
+    workdir = os.path.join(a.workdir, v)
+    print(f'== {v}: {dict(VARIANTS[v])} -> {workdir}', flush=True)
+    trainer.train_and_evaluate(config, workdir, log=lambda *_: None)
+    if a.train_only:
+      continue
+    sensor = sensor_lib.from_config(config.sensor)
+    d = pipeline.dataset_dir(config, sensor, log=lambda *_: None)
+    split = lambda s, kind='': arrays.load_split(d, s, sensor, kind)
+    train = np.asarray(split('train')[:512])
+    real_rings = ring_drop_rate(codec.encode(train, sensor))
+    cache = os.path.join(workdir, f'screen_eval_{a.num_invert}_{a.invert_steps}.json')
+    if os.path.isfile(cache):
+      ev = json.load(open(cache))
+    else:
+      ev = evaluate(workdir, split, a.num_invert, a.invert_steps)
+      json.dump(ev, open(cache, 'w'))
+    results[v] = {'options': VARIANTS[v], 'eval': ev,
+                  'curves': curves(workdir, real_rings)}
+    c, m = results[v]['curves'], ev['measurability']
+    late = [r for s, r in zip(c['step'], c['drop_rate']) if s > 500]
+    print(f'   drop rate end {c["drop_rate"][-1]:.4f} (min after 500: '
+          f'{min(late) if late else float("nan"):.4f}; real {c["real_drop_rate"][-1]:.3f}), '
+          f'ring corr {c["ring_corr"][-1]:+.2f}, D {c["d_real"][-1]:+.2f}/'
+          f'{c["d_fake"][-1]:+.2f}; AUC near {m["auc_near"]:.3f} surface '
+          f'{m["auc_surface"]:.3f}, ECE {m["ece"]:.3f}, completion AbsRel '
+          f'{ev["completion"]["abs_rel"]:.3f}, fit {ev["fit"]["abs_rel"]:.3f}', flush=True)
+  if results:
+    real_rate = float(np.mean(next(iter(results.values()))['curves']['real_drop_rate']))
+    os.makedirs(a.out, exist_ok=True)
+    plot(results, real_rate, os.path.join(a.out, f'{a.name}.png'), a.title)
+    common.write_json(os.path.join(a.out, f'{a.name}.json'),
+                      dict(steps=a.steps, num_invert=a.num_invert,
+                           invert_steps=a.invert_steps, results=results))
+
+
+if __name__ == '__main__':
+  main()

@@ -1,0 +1,166 @@
+"""The command lines: every error a user's input causes is one line on stderr
+and a non-zero exit; Ctrl-C and a full disk say what a rerun does."""
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+HERE = os.path.dirname(__file__)
+SMOKE = os.path.join(HERE, '..', 'experiments', 'smoke.py')
+
+
+def _env(tmp_path, devices=1):
+  env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
+  if devices == 1:
+    env.pop('XLA_FLAGS', None)
+  return env
+
+
+def _messages(stderr: str):
+  """stderr's lines without the progress bar's (tqdm) frames."""
+  lines = re.split(r'[\r\n]+', stderr)
+  return [l for l in lines if l.strip() and not re.search(r'\d+%\|', l)]
+
+
+def _one_error_line(res, status):
+  lines = _messages(res.stderr)
+  assert res.returncode == status, res.stderr[-3000:]
+  assert len(lines) == 1 and lines[0].startswith('error: '), res.stderr[-3000:]
+  return lines[0]
+
+
+def test_unknown_config_field_names_the_nearest(tmp_path):
+  """Item 1: one line with difflib's nearest field, exit 2 as absl's bad flags."""
+  cmd = [sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE,
+         '--workdir', str(tmp_path / 'w')]
+  res = subprocess.run(cmd + ['--config.data.dri=data/kitti'], env=_env(tmp_path),
+                       capture_output=True, text=True, timeout=300)
+  assert _one_error_line(res, 2) == ('error: unknown config field data.dri; did you '
+                                     'mean data.dir?')
+  res = subprocess.run(cmd + ['--config.batchsize=4'], env=_env(tmp_path),
+                       capture_output=True, text=True, timeout=300)
+  assert _one_error_line(res, 2) == ('error: unknown config field batchsize; did you '
+                                     'mean batch_size?')
+  assert not (tmp_path / 'w').exists()
+
+
+def test_unknown_field_message():
+  import ml_collections
+  from dusty_jax import cli
+  c = ml_collections.ConfigDict({'lr': 0.1, 'data': {'dir': '', 'seed': 0}})
+  assert cli.unknown_field(c, 'data.dir') is None
+  assert cli.unknown_field(c, 'data.sed') == ('unknown config field data.sed; did you '
+                                              'mean data.seed?')
+  assert cli.unknown_field(c, 'zzzz') == 'unknown config field zzzz'
+  assert 'lr is a value' in cli.unknown_field(c, 'lr.x')
+
+
+def _wrong_shape_data(tmp_path):
+  d = tmp_path / 'wrong'
+  d.mkdir()
+  np.save(d / 'train.npy', np.ones((3, 8, 8), np.float32))
+  return f'--config.data.dir={d}'
+
+
+# Item 2: (arguments, devices, exit status, what the one line says).
+BAD = [
+    (['--config.sensor.preset=hdl64'], 1, 2, r"sensor\.preset='hdl64'.*kitti, mpo"),
+    (['--config.batch_size=6'], 4, 2, r'batch_size=6: is not divisible by the 4 devices'),
+    ([_wrong_shape_data], 1, 1, r'train\.npy: array of shape \(3, 8, 8\) does not match'),
+    (['--config.batch_size=0'], 1, 2, r'batch_size=0: must be a whole number >= 1'),
+    (['--config.lr=-1'], 1, 2, r'lr=-1'),
+    (['--config.model=dusty3'], 1, 2, r'model=.dusty3.'),
+    (['--config.data.dir=/nonexistent'], 1, 1, r'dusty_jax\.tools\.prepare'),
+    (['--config.batch_size=abc'], 1, 2, r'--config\.batch_size=abc'),
+    (['--config=nonexistent.py'], 1, 2, r'nonexistent\.py: no such config file'),
+    (['--nosuchflag'], 1, 2, r"Unknown command line flag 'nosuchflag'"),
+    (['extra'], 1, 2, r'unexpected arguments'),
+]
+
+
+@pytest.mark.parametrize('args, devices, status, says', BAD,
+                         ids=[re.sub(r'\W+', '_', str(a[0]))[:40] for a, *_ in BAD])
+def test_bad_config_is_one_line(tmp_path, args, devices, status, says):
+  args = [a(tmp_path) if callable(a) else a for a in args]
+  res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE,
+                        '--workdir', str(tmp_path / 'w')] + args,
+                       env=_env(tmp_path, devices), capture_output=True, text=True,
+                       timeout=300)
+  assert re.search(says, _one_error_line(res, status))
+  assert not (tmp_path / 'w').exists()
+
+
+def _start_training(tmp_path, workdir, *extra, prefix=()):
+  cmd = list(prefix) + [
+      sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE, '--workdir', workdir,
+      '--config.num_steps=100000', '--config.checkpoint_every=2',
+      '--config.log_every=1', '--config.image_every=100000',
+      '--config.data.num_synthetic=16'] + list(extra)
+  # SIGINT as a terminal delivers it: a shell starting this suite in the
+  # background leaves it ignored, and Python then never raises
+  # KeyboardInterrupt.
+  return subprocess.Popen(cmd, env=_env(tmp_path), stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True,
+                          cwd=os.path.join(HERE, '..'),
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
+  """Item 3: the step, the checkpoint a rerun resumes from; no traceback."""
+  workdir = tmp_path / 'w'
+  proc = _start_training(tmp_path, str(workdir))
+  deadline = time.time() + 500
+  saved = lambda: [int(s) for s in os.listdir(workdir / 'checkpoints') if s.isdigit()]
+  while not (workdir / 'checkpoints').is_dir() or max(saved(), default=0) < 4:
+    assert proc.poll() is None, proc.communicate()[1][-3000:]
+    assert time.time() < deadline, 'no checkpoint within the time allowed'
+    time.sleep(0.5)
+  proc.send_signal(signal.SIGINT)
+  _, err = proc.communicate(timeout=300)
+  assert proc.returncode == 130, err[-3000:]
+  lines = _messages(err)
+  assert 'Traceback' not in err and len(lines) == 1, err[-3000:]
+  m = re.fullmatch(r'interrupted at step (\d+); the last checkpoint is step (\d+); '
+                   r'rerun the same command to resume', lines[0])
+  assert m, lines
+  step, last = int(m.group(1)), int(m.group(2))
+  assert last >= 4 and step >= last
+  assert max(saved()) == last
+
+
+def _can_mount_tmpfs():
+  if not shutil.which('unshare'):
+    return False
+  res = subprocess.run(['unshare', '--mount', 'sh', '-c',
+                        'mount -t tmpfs -o size=1m tmpfs /mnt'], capture_output=True)
+  return res.returncode == 0
+
+
+@pytest.mark.skipif(not _can_mount_tmpfs(), reason='needs unshare and tmpfs mounts '
+                    '(root or user namespaces) to fill a disk')
+def test_full_disk_during_a_checkpoint_is_one_line(tmp_path):
+  """Item 6: a 2 MB disk holds two checkpoints of the smoke run; writing the
+  third fails. One line: which checkpoint, which are intact, what to do."""
+  disk = tmp_path / 'disk'
+  disk.mkdir()
+  workdir = str(disk / 'w')
+  script = (f'mount -t tmpfs -o size=2m tmpfs {disk} && exec "$@"')
+  proc = _start_training(tmp_path, workdir, prefix=(
+      'unshare', '--mount', 'sh', '-c', script, 'sh'))
+  _, err = proc.communicate(timeout=600)
+  line = _messages(err)
+  assert proc.returncode == 1 and len(line) == 1, err[-3000:]
+  m = re.fullmatch(r'error: no space left on device while writing checkpoint (\d+) in '
+                   r'\S+/checkpoints; (?:step|steps) ([\d, and]+) (?:is|are) intact; '
+                   r'free space and rerun to resume from (\d+)', line[0])
+  assert m, line
+  intact = [int(s) for s in re.findall(r'\d+', m.group(2))]
+  assert intact == sorted(intact) and int(m.group(3)) == intact[-1]
+  assert int(m.group(1)) > intact[-1]

@@ -1,0 +1,184 @@
+"""The point-drop mechanisms beyond the paper (config ``drops``), each against
+what it should compute."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dusty_jax import augment, configs, parallel, trainer
+from dusty_jax.codec import ALPHA
+from dusty_jax.sensor import tiny_sensor
+from train_helpers import tiny_config
+
+
+def _scans_and_keep(b=8, h=16, w=64, seed=0, rate=0.3):
+  rng = np.random.default_rng(seed)
+  keep = (rng.uniform(size=(b, h, w)) > rate).astype(np.float32)
+  x = np.where(keep > 0, rng.uniform(-0.9, 1, (b, h, w)), ALPHA).astype(np.float32)
+  return jnp.asarray(x), jnp.asarray(keep)
+
+
+def _setup(init=True, **drops):
+  c = tiny_config()
+  c.drops.update(drops)
+  configs.validate(c)
+  sensor = tiny_sensor(c.sensor.height, c.sensor.width)
+  setup = trainer.make_setup(c, sensor)
+  return c, setup, trainer.init_state(setup, jax.random.key(0)) if init else None
+
+
+@pytest.mark.parametrize('style', augment.STYLES)
+def test_with_mask_augments_the_scan_as_diff_augment_does(style):
+  x, keep = _scans_and_keep()
+  key = jax.random.key(3)
+  y, k = augment.with_mask(key, x, keep, augment.POLICY, style)
+  np.testing.assert_array_equal(y, augment.diff_augment(key, x, augment.POLICY, style))
+  # The mask moves with the scan: a returned pixel stays returned (the
+  # colour ops cannot bring a pixel to ALPHA where they leave the mask 1,
+  # and vice versa for moved drops outside the cut-out).
+  moved = augment.with_mask(key, keep, keep, ('translation',), style)[0]
+  np.testing.assert_array_equal(augment.with_mask(key, x, keep, ('translation',), style)[1],
+                                jnp.where(moved == (0.0 if style == 'authors' else ALPHA),
+                                          0.0, moved))
+
+
+def test_keep_drops_leaves_drops_at_the_drop_constant():
+  x, keep = _scans_and_keep()
+  key = jax.random.key(4)
+  y, k = augment.with_mask(key, x, keep, augment.POLICY, 'authors', keep_drops=True,
+                           drop_const=-2.0)
+  np.testing.assert_array_equal(np.asarray(y)[np.asarray(k) == 0], -2.0)
+  # Colour alone: returned pixels get the same brightness as DiffAugment's,
+  # drops none of it.
+  yb, kb = augment.with_mask(key, x, keep, ('brightness',), 'authors', keep_drops=True)
+  ref = augment.diff_augment(key, x, ('brightness',), 'authors')
+  np.testing.assert_array_equal(kb, keep)
+  np.testing.assert_allclose(yb, jnp.where(keep > 0, ref, ALPHA), rtol=0, atol=1e-6)
+  # Translated-in rows and the cut-out read as drops.
+  yt, kt = augment.with_mask(key, x, keep, ('translation', 'cutout'), 'authors',
+                             keep_drops=True)
+  assert float((kt == 0).mean()) > float((keep == 0).mean()) + 0.05
+
+
+def test_mask_channel_is_the_weighted_moved_mask():
+  _, setup, _ = _setup(False, mask_channel=0.5)
+  x, keep = _scans_and_keep()
+  keys = jax.random.split(jax.random.key(1), len(x))
+  v = jax.jit(lambda *a: trainer.d_view(setup, *a))(keys, x, keep)
+  assert v.shape == x.shape + (2,)
+  y, k = augment.per_example_with_mask(keys, x, keep, setup.policy, setup.augment_style)
+  np.testing.assert_allclose(v[..., 0], y, rtol=0, atol=1e-6)  # jit vs eager rounding
+  np.testing.assert_array_equal(v[..., 1], 0.5 * k)
+
+
+def test_mask_channel_noise_and_dropout():
+  x, keep = _scans_and_keep(b=64)
+  keys = jax.random.split(jax.random.key(1), len(x))
+  _, hidden, _ = _setup(False, mask_channel=1.0, mask_dropout=1.0)
+  np.testing.assert_array_equal(trainer.d_view(hidden, keys, x, keep)[..., 1], 0.0)
+  _, half, _ = _setup(False, mask_channel=1.0, mask_dropout=0.5)
+  shown = np.asarray(trainer.d_view(half, keys, x, keep)[..., 1]).any(axis=(1, 2))
+  assert 0.25 < shown.mean() < 0.75
+  _, noisy, _ = _setup(False, mask_channel=1.0, mask_noise=0.1)
+  _, clean, _ = _setup(False, mask_channel=1.0)
+  diff = trainer.d_view(noisy, keys, x, keep)[..., 1] - trainer.d_view(clean, keys, x, keep)[..., 1]
+  assert float(jnp.std(diff)) == pytest.approx(0.1, rel=0.05)
+  assert abs(float(jnp.mean(diff))) < 0.01
+
+
+@pytest.mark.parametrize('rate_by', ['image', 'ring'])
+def test_rate_penalty_against_numpy(rate_by):
+  _, setup, _ = _setup(False, rate_weight=1.0, rate_by=rate_by)
+  _, keep = _scans_and_keep(seed=1, rate=0.5)
+  _, real = _scans_and_keep(seed=2, rate=0.2)
+  k, r = np.asarray(keep, np.float64), np.asarray(real, np.float64)
+  axes = (0, 2) if rate_by == 'ring' else (0, 1, 2)
+  want = np.mean(np.square(k.mean(axis=axes) - r.mean(axis=axes)))
+  got = trainer.rate_penalty(setup.drops, keep, real)
+  assert float(got) == pytest.approx(want, rel=1e-5)
+  # Only the generated mask is pushed: towards the real rate.
+  g = jax.grad(lambda m: trainer.rate_penalty(setup.drops, m, real))(keep)
+  assert float(g.sum()) < 0  # generated keeps less than real: raising it pays.
+  assert float(jnp.abs(jax.grad(lambda r: trainer.rate_penalty(
+      setup.drops, keep, r))(real)).max()) == 0.0
+
+
+def test_mask_bias_sets_the_initial_keep_rate():
+  _, setup, state = _setup(mask_bias=2.0)
+  np.testing.assert_array_equal(state.g_params['params']['head_bias'], [0.0, 2.0])
+  z = jax.random.normal(jax.random.key(2), (32, setup.settings.latent_dim))
+  keys = jax.random.split(jax.random.key(3), 32)
+  masks = jax.jit(lambda p: trainer.fake_scans(setup, p, z, keys)['mask'])
+  keep = masks(state.g_params)
+  _, _, state0 = _setup()
+  keep0 = masks(state0.g_params)
+  # The keep rate rises from about one half towards sigmoid(2) = 0.88.
+  assert float(keep0.mean()) == pytest.approx(0.5, abs=0.08)
+  assert float(keep.mean()) > 0.75
+
+
+def test_mask_lr_scales_only_the_measurability_head():
+  updates = {'params': {'head': {'kernel': jnp.ones((4, 4, 3, 2))},
+                        'head_bias': jnp.ones((2,)), 'up1_bias': jnp.ones((5,))}}
+  out = trainer.scale_mask_updates(updates, 0.1)
+  np.testing.assert_allclose(out['params']['head']['kernel'][..., 0], 1.0)
+  np.testing.assert_allclose(out['params']['head']['kernel'][..., 1], 0.1)
+  np.testing.assert_allclose(out['params']['head_bias'], [1.0, 0.1])
+  np.testing.assert_allclose(out['params']['up1_bias'], 1.0)
+
+
+def test_a_step_with_every_option_runs_and_sees_the_mask():
+  c, setup, state = _setup(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
+                           keep_drops=True, mask_bias=1.4, mask_lr=0.5,
+                           rate_weight=10.0, rate_by='ring')
+  # D's first kernel sees 2 channels, each blurred two ways.
+  assert state.d_params['params']['down0']['kernel'].shape[2] == 4
+  mesh = parallel.data_mesh(jax.devices()[:1])
+  step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+  state = parallel.replicate(state, mesh)
+  x, _ = _scans_and_keep(b=c.batch_size)
+  head0 = np.asarray(state.g_params['params']['head_bias'])
+  state, m = step(state, parallel.shard_batch(np.asarray(x), mesh), jax.random.key(1))
+  m = parallel.to_host(m)
+  assert all(np.isfinite(float(v)) for v in m.values())
+  assert not np.allclose(np.asarray(state.g_params['params']['head_bias']), head0)
+
+
+def test_mask_lr_zero_freezes_the_measurability_head():
+  c, setup, state = _setup(mask_lr=1e-12, rate_weight=1.0)
+  mesh = parallel.data_mesh(jax.devices()[:1])
+  step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+  before = np.asarray(state.g_params['params']['head']['kernel'])
+  state, _ = step(parallel.replicate(state, mesh), parallel.shard_batch(
+      np.asarray(_scans_and_keep(b=c.batch_size)[0]), mesh), jax.random.key(1))
+  after = np.asarray(state.g_params['params']['head']['kernel'])
+  np.testing.assert_allclose(after[..., 1], before[..., 1], atol=1e-10)
+  assert np.abs(after[..., 0] - before[..., 0]).max() > 1e-4
+
+
+@pytest.mark.parametrize('field,value', [('mask_dropout', 1.5), ('mask_noise', -1.0),
+                                         ('mask_lr', 0.0), ('rate_by', 'pixel')])
+def test_bad_drop_options_name_the_field(field, value):
+  c = tiny_config()
+  c.drops[field] = value
+  with pytest.raises(configs.ConfigError, match=f'drops.{field}'):
+    configs.validate(c)
+
+
+def test_baseline_refuses_mask_options():
+  c = tiny_config(model='baseline')
+  c.drops.rate_weight = 1.0
+  with pytest.raises(configs.ConfigError, match='no measurability'):
+    configs.validate(c)
+
+
+def test_only_the_mask_channel_changes_the_architecture():
+  a, b = tiny_config(), tiny_config()
+  b.drops.rate_weight = 5.0
+  assert configs.architecture_diff(a, b) == {}
+  b.drops.mask_channel = 1.0
+  assert 'drops' in configs.architecture_diff(a, b)
+  old = tiny_config()
+  del old['drops']  # a run from before the options: all off.
+  assert configs.architecture_diff(old, a) == {}
