@@ -31,13 +31,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct, traverse_util
 
-from dusty_jax import checkpoint, configs
+from dusty_jax import checkpoint, configs, encoder as encoder_lib
 from dusty_jax.data import arrays
 from dusty_jax.models import ModelSettings
 from dusty_jax.sensor import SensorSpec, check_angles, from_config as sensor_from_config
 
 SPEC_FILE = 'generator.json'
-FORMAT = 1
+FORMAT = 2  # 2: an exported .npz may hold an encoder (encoder.py); 1 reads as before
 
 
 class GeneratorParams(struct.PyTreeNode):
@@ -47,6 +47,11 @@ class GeneratorParams(struct.PyTreeNode):
   sensor: SensorSpec = struct.field(pytree_node=False, default=None)
   settings: ModelSettings = struct.field(pytree_node=False, default=ModelSettings())
   tolerance: float = struct.field(pytree_node=False, default=0.0)
+  # The encoder that starts inversion (encoder.py), or None: its variables
+  # and its network's size.
+  encoder: Any = None
+  encoder_settings: encoder_lib.EncoderSettings | None = struct.field(
+      pytree_node=False, default=None)
 
   # The settings most callers read, by name.
   model = property(lambda self: self.settings.model)
@@ -192,6 +197,11 @@ def load(path: str, step: int | None = None, ema: bool = True,
   params = GeneratorParams(variables=variables, angles=jnp.asarray(table, jnp.float32),
                            sensor=sensor, settings=settings, tolerance=tolerance)
   check(params, path)
+  enc_path = os.path.join(path, encoder_lib.FILE)
+  if os.path.isfile(enc_path):
+    enc, enc_settings, _ = encoder_lib.load(enc_path)
+    params = params.replace(encoder=enc, encoder_settings=enc_settings)
+    encoder_lib.check(params, enc_path)
   return params, run_config
 
 
@@ -207,10 +217,14 @@ def check(params: GeneratorParams, source: str = 'generator'):
 
 
 def export(params: GeneratorParams, path: str, source: str = '') -> str:
-  """Writes a generator as one ``.npz`` (variables, angles, description)."""
+  """Writes a generator as one ``.npz`` (variables, angles, description,
+  and its encoder if it has one, under ``encoder/``)."""
   meta = dict(describe(params.sensor, params.settings, params.tolerance), source=source)
   flat = traverse_util.flatten_dict(params.variables, sep='/')
   arrs = {f'variables/{k}': np.asarray(v, np.float32) for k, v in flat.items()}
+  if params.encoder is not None:
+    meta['encoder'] = dataclasses.asdict(params.encoder_settings)
+    arrs.update({f'encoder/{k}': v for k, v in encoder_lib.flatten(params.encoder).items()})
   np.savez_compressed(path, meta=np.asarray(json.dumps(meta)),
                       angles=np.asarray(params.angles, np.float32), **arrs)
   return path
@@ -222,6 +236,7 @@ def load_file(path: str) -> GeneratorParams:
     meta = json.loads(str(f['meta']))
     flat = {k[len('variables/'):]: jnp.asarray(f[k]) for k in f.files
             if k.startswith('variables/')}
+    enc = {k[len('encoder/'):]: f[k] for k in f.files if k.startswith('encoder/')}
     table = jnp.asarray(f['angles'])
   if 'settings' not in meta:  # files written before format 1: flat fields.
     meta = {'sensor': meta['sensor'], 'tolerance': meta.get('tolerance', 0.0),
@@ -232,4 +247,8 @@ def load_file(path: str) -> GeneratorParams:
                            angles=table, sensor=sensor, settings=settings,
                            tolerance=tolerance)
   check(params, path)
+  if enc:  # format 2
+    params = params.replace(encoder=encoder_lib.unflatten(enc),
+                            encoder_settings=encoder_lib.EncoderSettings(**meta['encoder']))
+    encoder_lib.check(params, path)
   return params

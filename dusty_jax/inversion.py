@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import sampling
+from dusty_jax import encoder as encoder_lib, sampling
 from dusty_jax.codec import ALPHA
 from dusty_jax.generator import GeneratorParams
 
@@ -50,18 +50,7 @@ def lr_schedule(num_steps: int, lr: float = LR):
       boundaries=[up, num_steps - down])
 
 
-@functools.partial(jnp.vectorize, signature='(d)->(d)')
-def project(z):
-  """Onto the sphere of radius sqrt(d), along the last axis.
-
-  z is first divided by its largest magnitude (the projection does not
-  change), so a norm whose square would underflow float32 still gives a
-  point on the sphere. z = 0, whose nearest point on the sphere could be
-  any, goes to the all-ones point, whose norm is sqrt(d).
-  """
-  big = jnp.max(jnp.abs(z))
-  z = jnp.where(big > 0, z / jnp.where(big > 0, big, 1.0), 1.0)
-  return optax.projections.projection_l2_sphere(z, jnp.sqrt(z.shape[-1]))
+project = encoder_lib.project  # onto the latent sphere of radius sqrt(d)
 
 
 def target_mask(scan, mask=None):
@@ -92,15 +81,21 @@ def random_start(params, scans, masks, keys):
       jax.random.split(k)[0], (params.latent_dim,))))(keys)
 
 
+def encoder_start(params, scans, masks, keys):
+  """The encoder's answer (encoder.py), from the scan's valid target pixels."""
+  del keys
+  return encoder_lib.encode(params, jnp.where(masks, scans, ALPHA))
+
+
 # How a search can start, by name: each maps (params, scans (B, H, W), masks,
 # keys (B,)) to (B, d) latents on the sphere, traced inside invert's jit.
 # invert(init=NAME) looks the name up here; a new start is one more entry.
-STARTS = {'random': random_start}
+STARTS = {'random': random_start, 'encoder': encoder_start}
 
 
 def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
   kn = jax.random.split(key)[1]
-  tx = optax.adam(lr_schedule(num_steps, lr))
+  tx = optax.adam(lr_schedule(max(num_steps, 1), lr))
   opt = tx.init(z)
   target = jnp.where(mask, target, 0.0)
 
@@ -117,7 +112,8 @@ def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
     updates, opt = tx.update(grad, opt, z)
     return project(optax.apply_updates(z, updates)), opt
 
-  z, _ = jax.lax.fori_loop(0, num_steps, body, (z, opt))
+  if num_steps:  # 0 steps: the start is the answer.
+    z, _ = jax.lax.fori_loop(0, num_steps, body, (z, opt))
   return z, loss_fn(z)
 
 
@@ -143,6 +139,8 @@ def _check_init(params, init, num_scans):
     if init not in STARTS:
       raise ValueError(f'init={init!r}: known starts are {sorted(STARTS)}, or '
                        'given latents (B, latent_dim)')
+    if init == 'encoder':
+      encoder_lib.check_has_encoder(params, f'generator {params.model!r}')
     return init, None
   z = jnp.asarray(init, jnp.float32)
   want = (num_scans, params.latent_dim)
@@ -181,10 +179,13 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
       mask inferred from ALPHA).
     key: a PRNG key (default key 0), scan i then using ``fold_in(key, i)``;
       or one key per scan.
-    num_steps: optimisation steps (1000 as in the paper).
+    num_steps: optimisation steps (1000 as in the paper); 0 returns the
+      start itself (with ``init='encoder'``: the encoder's answer alone).
     init: where the search starts: a name in ``STARTS`` (``'random'``, the
-      authors' start, drawn from each scan's key), or given latents (B, d)
-      (one per scan, (d,) for a 2-D scan), projected onto the sphere.
+      authors' start, drawn from each scan's key; ``'encoder'``, the
+      generator's encoder, trained by ``python -m
+      dusty_jax.tools.train_encoder``), or given latents (B, d) (one per
+      scan, (d,) for a 2-D scan), projected onto the sphere.
     loss: the objective ``loss(x_tilde, target, mask) -> scalar`` of one
       scan (default :func:`objective`, the authors' masked L1); a hashable
       function, as jit keys its compilation on it.
@@ -200,8 +201,8 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     of 0 scans gives results with a leading axis of 0 (as numpy: empty in,
     empty out).
   """
-  if not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
-    raise ValueError(f'num_steps={num_steps!r}: must be a whole number >= 1')
+  if not isinstance(num_steps, (int, np.integer)) or num_steps < 0:
+    raise ValueError(f'num_steps={num_steps!r}: must be a whole number >= 0')
   if not isinstance(lr, jax.core.Tracer) and not (
       np.ndim(lr) == 0 and np.isfinite(lr) and lr > 0):
     raise ValueError(f'lr={lr!r}: the learning rate must be a finite number > 0')

@@ -1,7 +1,7 @@
 """Reconstructs or restores scans with a trained generator (GAN inversion).
 
     python -m dusty_jax.tools.invert --workdir RUN --input FILE_OR_DIR \\
-        [--corrupt drop:0.9|beams:8|noise:0.01] --out DIR
+        [--corrupt drop:0.9|beams:8|noise:0.01] [--init random|encoder] --out DIR
 
 Inputs: KITTI ``.bin`` files (unfolded with the run's sensor), or ``.npy``
 holding metric depth (H, W) or (N, H, W) (the prepared format). Writes per
@@ -43,8 +43,12 @@ def main(argv=None):
   flags.DEFINE_integer('num', 100, 'scans of --split', lower_bound=1, flag_values=f)
   flags.DEFINE_string('corrupt', '', 'drop:F, beams:K or noise:S', flag_values=f)
   flags.DEFINE_string('out', 'inversion', 'output folder', flag_values=f)
-  flags.DEFINE_integer('steps', 1000, 'optimisation steps per scan', lower_bound=1,
-                       flag_values=f)
+  flags.DEFINE_integer('steps', 1000, 'optimisation steps per scan (0: the start '
+                       'alone, e.g. the encoder\'s answer)', lower_bound=0, flag_values=f)
+  flags.DEFINE_enum('init', 'random', ['random', 'encoder'],
+                    "where the search starts: 'random' (the authors') or 'encoder' "
+                    '(the run\'s encoder, from python -m dusty_jax.tools.train_encoder)',
+                    flag_values=f)
   flags.DEFINE_integer('batch', 16, 'scans inverted together', lower_bound=1,
                        flag_values=f)
   flags.DEFINE_integer('seed', 0, 'random seed', flag_values=f)
@@ -82,6 +86,9 @@ def run(a):
   if a.corrupt:
     corrupt.parse(a.corrupt)
   params, config = generator.load(a.workdir)
+  if a.init == 'encoder':
+    from dusty_jax import encoder
+    encoder.check_has_encoder(params, a.workdir)
   sensor = params.sensor
   angles = np.asarray(params.angles)
   if a.input:
@@ -107,7 +114,7 @@ def run(a):
     target = corrupt.apply(a.corrupt, k, clean, sensor) if a.corrupt else clean
     keys = jax.vmap(lambda i: jax.random.fold_in(k, i))(jax.numpy.arange(len(chunk)))
     res = jax.device_get(inversion.invert(params, target, key=keys,
-                                          num_steps=a.steps))
+                                          num_steps=a.steps, init=a.init))
     errs = reconstruction.errors(depth, res, angles, sensor, a.protocol)
     if a.split and truth is not None:
       sl = slice(start, start + len(chunk))
@@ -134,7 +141,8 @@ def run(a):
   label = f'{params.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
     json.dump({**table_provenance(a, sensor, len(per_scan)), 'mean': mean,
-               'per_scan': per_scan, 'corrupt': a.corrupt, 'steps': a.steps},
+               'per_scan': per_scan, 'corrupt': a.corrupt, 'steps': a.steps,
+               'init': a.init},
               f, indent=2)
   print(f'protocol {a.protocol}: {len(per_scan)} scans')
   print(protocol.format_table({label: mean}, reconstruction.COLUMNS))

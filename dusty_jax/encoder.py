@@ -1,0 +1,259 @@
+"""An encoder that starts GAN inversion: one forward pass, scan -> latent.
+
+Beyond the paper (its inversion, like the authors' code, searches from a
+random latent for 1000 Adam steps). ``Encoder`` maps a scan (normalised
+inverse depth, drops at ALPHA, corrupted or not) to a latent on the
+generator's sphere of radius sqrt(d); ``invert(params, scan,
+init='encoder', num_steps=k)`` refines that with k steps of the search, and
+``num_steps=0`` returns the encoder's answer alone.
+
+It is trained per generator on the generator's own samples (z, G(z)): the
+input is G(z) with the drops G samples and a random corruption (none, drop,
+beams or noise, as the invert CLI's ``--corrupt``), and the loss is
+
+    w_latent * |E(x) - z|^2 / d  +  w_rec * mean |x_tilde(E(x)) - x_tilde(z)|
+
+The reconstruction term, through the frozen G, is what the inversion itself
+measures, and it lets E ignore latent directions G does not use; its target
+is G's *complete* inverse depth, so E learns to complete what was dropped.
+The latent term pins E to the z that made the scan where G is flat in z, and
+gives a useful gradient from the first step, when x_tilde(E(x)) is still
+far from anything. ``python -m dusty_jax.tools.train_encoder`` trains one on
+a run directory (resumable) and writes ``encoder.npz`` beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import os
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import traverse_util
+
+from dusty_jax import corrupt, layers
+from dusty_jax.codec import ALPHA
+from dusty_jax.models import EqualConv, check_shape
+
+FILE = 'encoder.npz'  # in a run directory, beside generator.json
+TRAIN_COMMAND = 'python -m dusty_jax.tools.train_encoder --workdir RUN'
+
+
+@functools.partial(jnp.vectorize, signature='(d)->(d)')
+def project(z):
+  """Onto the sphere of radius sqrt(d), the generator's latent space, along
+  the last axis.
+
+  z is first divided by its largest magnitude (the projection does not
+  change), so a norm whose square would underflow float32 still gives a
+  point on the sphere. z = 0, whose nearest point on the sphere could be
+  any, goes to the all-ones point, whose norm is sqrt(d).
+  """
+  big = jnp.max(jnp.abs(z))
+  z = jnp.where(big > 0, z / jnp.where(big > 0, big, 1.0), 1.0)
+  return optax.projections.projection_l2_sphere(z, jnp.sqrt(z.shape[-1]))
+
+
+@dataclasses.dataclass(frozen=True)
+class EncoderSettings:
+  """The encoder network's size (the latent size and the sensor are the
+  generator's). The default is about 1.1 M weights (4.4 MB float32)."""
+  ch_base: int = 16
+  ch_max: int = 64
+  hidden: int = 256
+
+  def __post_init__(self):
+    for f in ('ch_base', 'ch_max', 'hidden'):
+      v = getattr(self, f)
+      if not isinstance(v, int) or v < 1:
+        raise ValueError(f'encoder {f}={v!r}: must be a whole number >= 1')
+
+
+class Encoder(nn.Module):
+  """Scans (B, H, W) -> unprojected latents (B, latent_dim).
+
+  Two input channels: the inverse depth of returned pixels (0 elsewhere) and
+  the return mask (+-1), so a drop is never confused with a far return. Four
+  4x4 stride-2 convolutions on the cylinder (the discriminator's), then two
+  dense layers; equalized learning rate throughout.
+  """
+  sensor: Any
+  latent_dim: int
+  settings: EncoderSettings = EncoderSettings()
+  impl: str = 'matmul'
+
+  @nn.compact
+  def __call__(self, scan):
+    check_shape(self.sensor)
+    valid = jnp.isfinite(scan) & (scan > ALPHA)
+    x = jnp.stack([jnp.where(valid, scan, 0.0), 2.0 * valid - 1.0], axis=-1)
+    for i in range(4):
+      c = min(self.settings.ch_base << i, self.settings.ch_max)
+      x = EqualConv(c, up=False, impl=self.impl, name=f'down{i}')(x)
+      x = layers.leaky_act(x, self.param(f'down{i}_bias', nn.initializers.zeros, (c,)))
+    x = x.reshape(x.shape[0], -1)
+    for name, width in (('hidden', self.settings.hidden), ('out', self.latent_dim)):
+      w = self.param(name, lambda k, s: jax.random.normal(k, s), (x.shape[-1], width))
+      b = self.param(f'{name}_bias', nn.initializers.zeros, (width,))
+      x = (x @ w) * (1.0 / math.sqrt(x.shape[-1]))
+      x = layers.leaky_act(x, b) if name == 'hidden' else x + b
+    return x
+
+
+def module(params, impl: str | None = None) -> Encoder:
+  """The encoder network of a generator's ``params`` (GeneratorParams)."""
+  return Encoder(params.sensor, params.latent_dim, params.encoder_settings or
+                 EncoderSettings(), impl or layers.default_impl())
+
+
+def check_has_encoder(params, source: str = 'this generator'):
+  if params.encoder is None:
+    raise ValueError(f"{source} has no encoder (init='encoder' needs one); train one "
+                     f'for its run with `{TRAIN_COMMAND}`, or use '
+                     "init='random'")
+
+
+def encode(params, scans, impl: str | None = None):
+  """Latents on the sphere (B, d) of scans (B, H, W): the encoder's answer."""
+  check_has_encoder(params)
+  return project(module(params, impl).apply(params.encoder, scans))
+
+
+def init_variables(key, params, settings: EncoderSettings = EncoderSettings()):
+  """Fresh encoder variables for the generator ``params``."""
+  enc = Encoder(params.sensor, params.latent_dim, settings, layers.default_impl())
+  return enc.init(key, jnp.zeros((1,) + params.sensor.shape))
+
+
+# ----------------------------------------------------------------------------
+# Training on the generator's own samples.
+# ----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainOptions:
+  """How an encoder is trained (tools/train_encoder.py's flags)."""
+  steps: int = 3000
+  batch: int = 32
+  lr: float = 1e-3
+  w_latent: float = 1.0
+  w_rec: float = 1.0
+  # Random corruption of each input, each with probability 1/4: none,
+  # drop:U(0.5, max_drop), beams:K for K in BEAMS, noise:U(0, max_noise).
+  max_drop: float = 0.95
+  max_noise: float = 0.02
+  seed: int = 0
+
+
+BEAMS = (2, 4, 8)
+
+
+def corrupt_one(key, scan, sensor, opts: TrainOptions):
+  """One of: the scan as is, random drops, every K-th ring, range noise."""
+  kc, kd, kf, kb, kn, ks = jax.random.split(key, 6)
+  fraction = jax.random.uniform(kf, (), minval=0.5, maxval=opts.max_drop)
+  k = jnp.asarray(BEAMS)[jax.random.randint(kb, (), 0, len(BEAMS))]
+  rows = (jnp.arange(scan.shape[0]) % k) == 0
+  sigma = jax.random.uniform(ks, (), maxval=opts.max_noise)
+  options = jnp.stack([
+      scan,
+      corrupt.drop(kd, scan, fraction),
+      jnp.where(rows[:, None], scan, ALPHA),
+      corrupt.noise(kn, scan, sigma, sensor)])
+  return options[jax.random.randint(kc, (), 0, 4)]
+
+
+def samples(params, key, batch: int, opts: TrainOptions, impl: str | None = None):
+  """(z, inputs, complete x_tilde) of ``batch`` samples of the generator."""
+  kz, km, kc = jax.random.split(key, 3)
+  z = project(jax.random.normal(kz, (batch, params.latent_dim)))
+  raw = params.module(impl).apply(params.variables, z)
+  out = params.variant.compose(raw, km, params.tau, train=False)  # as sample() gives
+  keys = jax.random.split(kc, batch)
+  inputs = jax.vmap(lambda k, s: corrupt_one(k, s, params.sensor, opts))(keys, out['scan'])
+  return z, inputs, out['inv_depth']
+
+
+def loss_fn(enc_vars, params, z, inputs, target, opts: TrainOptions,
+            impl: str | None = None):
+  """(total, (latent term, reconstruction term)) of one batch."""
+  e = project(module(params, impl).apply(enc_vars, inputs))
+  latent = jnp.mean(jnp.sum((e - z) ** 2, axis=-1)) / params.latent_dim
+  raw = params.module(impl).apply(params.variables, e)
+  rec = jnp.mean(jnp.abs(params.variant.decode_inv_depth(raw) - target))
+  return opts.w_latent * latent + opts.w_rec * rec, (latent, rec)
+
+
+def optimizer(opts: TrainOptions):
+  return optax.adam(optax.cosine_decay_schedule(opts.lr, opts.steps, alpha=0.05))
+
+
+@functools.partial(jax.jit, static_argnames=('opts', 'impl'))
+def train_step(params, enc_vars, opt_state, key, opts: TrainOptions,
+               impl: str | None = None):
+  """One Adam step of the encoder on fresh samples; G stays frozen."""
+  z, inputs, target = samples(params, key, opts.batch, opts, impl)
+  (loss, (latent, rec)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+      enc_vars, params, z, inputs, target, opts, impl)
+  updates, opt_state = optimizer(opts).update(grads, opt_state, enc_vars)
+  enc_vars = optax.apply_updates(enc_vars, updates)
+  return enc_vars, opt_state, {'loss': loss, 'latent': latent, 'rec': rec}
+
+
+# ----------------------------------------------------------------------------
+# On disk: encoder.npz in a run directory; the same arrays inside an exported
+# generator .npz under encoder/ (generator.py).
+# ----------------------------------------------------------------------------
+
+
+def flatten(variables) -> dict:
+  return {k: np.asarray(v, np.float32)
+          for k, v in traverse_util.flatten_dict(variables, sep='/').items()}
+
+
+def unflatten(flat: dict):
+  return traverse_util.unflatten_dict({k: jnp.asarray(v) for k, v in flat.items()},
+                                      sep='/')
+
+
+def save(path: str, variables, settings: EncoderSettings, info: dict | None = None):
+  """Writes the encoder's variables and settings as one .npz (atomically)."""
+  meta = {**(info or {}), 'settings': dataclasses.asdict(settings)}
+  tmp = path + '.tmp.npz'
+  np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)),
+                      **{f'encoder/{k}': v for k, v in flatten(variables).items()})
+  os.replace(tmp, path)
+  return path
+
+
+def load(path: str):
+  """(variables, settings, meta) of an encoder written by :func:`save`."""
+  try:
+    with np.load(path, allow_pickle=False) as f:
+      meta = json.loads(str(f['meta']))
+      flat = {k[len('encoder/'):]: f[k] for k in f.files if k.startswith('encoder/')}
+  except (OSError, ValueError, KeyError) as e:
+    raise ValueError(f'{path}: not an encoder file ({e})') from None
+  try:
+    settings = EncoderSettings(**meta['settings'])
+  except (KeyError, TypeError) as e:
+    raise ValueError(f'{path}: not an encoder description ({e})') from None
+  return unflatten(flat), settings, meta
+
+
+def check(params, source: str):
+  """Refuses encoder variables that do not fit the described network."""
+  want = jax.eval_shape(module(params).init, jax.random.key(0),
+                        jnp.zeros((1,) + params.sensor.shape))
+  shape = lambda t: jax.tree.map(lambda v: tuple(np.shape(v)), t)
+  if shape(want) != shape(params.encoder):
+    raise ValueError(f'{source}: the encoder does not fit this generator (latent '
+                     f'{params.latent_dim}, sensor {params.sensor.shape}, '
+                     f'{params.encoder_settings}); retrain it with `{TRAIN_COMMAND}`')
