@@ -5,6 +5,8 @@ deviation we prefer is an option here (README: "Differences from the
 authors' code").
 """
 
+from __future__ import annotations
+
 import json
 import os
 
@@ -93,8 +95,26 @@ class ConfigError(errors.UserError, ValueError):
 ARCHITECTURE = ('model', 'latent_dim', 'ch_base', 'ch_max', 'eqlr', 'sensor', 'drops')
 
 
+def _missing(c, want, prefix='') -> str | None:
+  """The first field of ``want`` (a default config) that ``c`` lacks."""
+  for k, v in want.items():
+    if k not in c:
+      return prefix + k
+    if isinstance(v, ml_collections.ConfigDict) and isinstance(c[k], ml_collections.ConfigDict):
+      missing = _missing(c[k], v, f'{prefix}{k}.')
+      if missing:
+        return missing
+  return None
+
+
 def validate(c) -> None:
-  """Checks a config before any work; raises ConfigError naming the field."""
+  """Checks a config before any work; raises ConfigError naming the field.
+  The one check: what is built from a valid config reads its fields as
+  they are (every field of :func:`default` is present)."""
+  missing = _missing(c, default())
+  if missing:
+    raise ConfigError(f'config field {missing} is missing: build experiment configs on '
+                      'dusty_jax.configs.default() and override what differs')
   def need(ok, field, why):
     if not ok:
       raise ConfigError(f'config field {field}={c.get(field)!r}: {why}')
@@ -113,17 +133,17 @@ def validate(c) -> None:
        'must be a whole number >= 1 (1: every step)')
   need(c.tau > 0, 'tau', 'the Gumbel temperature must be > 0')
   need(c.ema_halflife_kimg >= 0, 'ema_halflife_kimg', 'must be >= 0')
-  need(c.get('drop_const', -1.0) <= -1.0, 'drop_const',
+  need(c.drop_const <= -1.0, 'drop_const',
        'must be <= -1 (inside the depth range a drop would read as a surface)')
-  preset = c.sensor.get('preset', '')
+  preset = c.sensor.preset
   if preset and preset not in sensor_lib.PRESETS:
     raise ConfigError(f'config field sensor.preset={preset!r}: known presets are '
                       f"{', '.join(sorted(sensor_lib.PRESETS))} ('' with "
                       'sensor.height and sensor.width: a tiny test sensor)')
-  if not preset and not (c.sensor.get('height', 0) >= 1 and c.sensor.get('width', 0) >= 1):
+  if not preset and not (c.sensor.height >= 1 and c.sensor.width >= 1):
     raise ConfigError('config field sensor.preset is empty: give a preset, or '
                       'sensor.height and sensor.width >= 1 for a tiny sensor')
-  d = upgrade(c).drops
+  d = c.drops
   def need_drop(ok, field, why):
     if not ok:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')

@@ -85,7 +85,7 @@ class DropOptions:
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
-    d = configs.upgrade(config).drops
+    d = config.drops  # validated, or translated by configs.load
     return cls(mask_channel=float(d.mask_channel), mask_noise=float(d.mask_noise),
                mask_dropout=float(d.mask_dropout), keep_drops=bool(d.keep_drops),
                mask_bias=float(d.mask_bias), mask_lr=float(d.mask_lr),
@@ -474,7 +474,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
     configs.save(workdir, config)
     # What a trained generator is, saved before any checkpoint: loading it
     # later needs neither this trainer nor the dataset (generator.py).
-    tolerance = config.get('tolerance', 0.0)
+    tolerance = config.tolerance
     if os.path.isfile(os.path.join(workdir, generator.SPEC_FILE)):
       tolerance = generator.read_spec(workdir)[2]  # may have been tuned since.
     generator.save_spec(workdir, sensor, setup.settings, angles, tolerance)

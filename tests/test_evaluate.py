@@ -200,3 +200,41 @@ def test_invert_cli_records_protocol(smoke_run, tmp_path):
   assert m['seeds']['seed'] == 0 and "split 'val'" in m['subset']
   assert m['sensor']['height'] == 16 and m['dusty_jax_version']
   assert len(m['per_scan']) == 2 and np.isfinite(m['mean']['cd'])
+
+
+def test_synthesis_is_the_protocol_subset_over_seeds(tiny):
+  """evaluation.synthesis (what the evaluate tool writes): the protocol's test
+  subset, the samples of key(SAMPLE_SEED + s) against it per seed, and the
+  training-set row on the same subset rule, each equal to protocol.compare
+  called directly."""
+  from dusty_jax import evaluation, sampling, trainer
+  from train_helpers import tiny_config
+  setup = trainer.make_setup(tiny_config(), tiny)
+  state = trainer.init_state(setup, jax.random.key(0))
+  params = trainer.generator_params(setup, state.g_params, tiny.nominal_angles())
+  _, test = _scans(tiny, 8, seed=1, drop=0.1)
+  _, train = _scans(tiny, 10, seed=2, drop=0.1)
+  for name, n in (('reference', 4), ('paper', 3)):  # paper: skip 2, [2:9:2] of 8
+    rec = evaluation.synthesis(params, test, train, num=4, points=16, seeds=2,
+                               protocol_name=name)
+    assert rec['num'] == n and rec['subset'] == protocol.SUBSET_RULES[name]
+    assert rec['protocol'] == name and rec['seeds']['generator'] == [1000, 1001]
+    row = rec['rows'][evaluation.row_label(params, params.tolerance)]
+    ref = np.asarray(codec.encode(test[protocol.subset(8, 4, name)], tiny))
+    assert len(ref) == n
+    compare = lambda fake, seed: metrics.compare(ref, fake, params.angles, sensor=tiny,
+                                                 protocol=name, num_points=16, seed=seed)
+    for s in range(2):
+      gen = sampling.sample_scans(params, jax.random.key(1000 + s), n)
+      for k, v in compare(gen, s).items():
+        assert row[k][s] == pytest.approx(v, rel=1e-6, abs=1e-9), (name, s, k)
+    # The authors subsample train by the same rule and num; reference: n.
+    tr = np.asarray(codec.encode(train[protocol.subset(10, 4 if name == 'paper' else n,
+                                                       name)], tiny))[:n]
+    for k, v in compare(tr, 0).items():
+      assert rec['rows'][evaluation.TRAINING_ROW][k] == [pytest.approx(v, rel=1e-6)]
+  label = evaluation.row_label(params, 0.0)
+  assert label == 'dusty1' and set(rec['rows']) == {label, evaluation.TRAINING_ROW}
+  assert list(evaluation.synthesis(params, test, None, num=4, points=16, seeds=1)
+              ['rows']) == [label]
+  json.dumps(rec)

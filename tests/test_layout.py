@@ -162,3 +162,46 @@ def test_only_models_compares_model_names():
          for p in _python_files('dusty_jax', 'benchmarks', 'experiments')
          if p != models_py and (lines := _name_comparisons(p))}
   assert not bad, f'model names compared outside models.py: {bad}'
+
+
+# Function-level imports still without their reason, in files being edited
+# elsewhere when this rule was added; each entry goes when its file's
+# imports move to the top or say why they wait.
+_LAZY_UNEXPLAINED = {'dusty_jax/generator.py', 'dusty_jax/tools/invert.py',
+                     'dusty_jax/pretrained/__init__.py'}
+
+
+def _unexplained_lazy_imports(path: str) -> list:
+  """Lines of ``path`` importing a dusty_jax module inside a function with
+  no comment on that line or the one above (the reason it waits)."""
+  lines = open(path).read().splitlines()
+  out = []
+  for fn in ast.walk(ast.parse('\n'.join(lines), path)):
+    if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+      continue
+    for node in ast.walk(fn):
+      names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+               [node.module or ''] if isinstance(node, ast.ImportFrom) else [])
+      if not any(n.startswith('dusty_jax') for n in names):
+        continue
+      here, above = lines[node.lineno - 1], lines[node.lineno - 2].strip()
+      if '#' not in here and not above.startswith('#'):
+        out.append(node.lineno)
+  return out
+
+
+def test_the_lazy_import_check_sees_them(tmp_path):
+  p = tmp_path / 'x.py'
+  p.write_text('import os\n\ndef f():\n  from dusty_jax import a\n  import os\n'
+               '  # the reason\n  from dusty_jax import b\n  import dusty_jax.c  # why\n')
+  assert _unexplained_lazy_imports(str(p)) == [4]
+
+
+def test_lazy_imports_say_why():
+  """Imports sit at the top of a module, so its first lines show what it
+  depends on; one inside a function (import cost, an optional dependency,
+  an order such as distributed init) says why on its line or the one above."""
+  bad = {rel: lines for p in _python_files('dusty_jax')
+         if (rel := os.path.relpath(p, REPO)) not in _LAZY_UNEXPLAINED
+         and (lines := _unexplained_lazy_imports(p))}
+  assert not bad, f'function-level imports without a reason: {bad}'

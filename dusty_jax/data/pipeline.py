@@ -41,6 +41,8 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
     return directory
   directory = synthetic_dir(config, sensor)
   if not os.path.isfile(os.path.join(directory, arrays.META)):
+    # Imported here: the simulator's import cost (about 1.5 s), paid only
+    # when no cached dataset exists.
     from dusty_jax.data import synthetic
     log(f'simulating {config.data.num_synthetic} training scans into {directory} '
         '(once; cached)')

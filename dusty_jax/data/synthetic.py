@@ -14,6 +14,7 @@ import sys
 import numpy as np
 import tqdm
 
+from dusty_jax import codec
 from dusty_jax.data import arrays, kitti, simulated_lidar
 from dusty_jax.sensor import SensorSpec
 
@@ -93,7 +94,7 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
 
 def save_preview(path: str, directory: str, sensor: SensorSpec, num: int = 4):
   """PNG of observed depth, complete depth and drop probability, per scan."""
-  from dusty_jax import codec, writers
+  from dusty_jax import writers  # here: matplotlib's import cost, for a preview only
   obs = arrays.load_split(directory, 'train', sensor)[:num]
   comp = arrays.load_split(directory, 'train', sensor, 'complete')[:num]
   prob = arrays.load_split(directory, 'train', sensor, 'drop_prob')[:num]

@@ -22,14 +22,13 @@ import os
 
 from absl import flags
 
-from dusty_jax import tools
+from dusty_jax import configs, generator, tools, trainer
+from dusty_jax.data import arrays
 
 
 def convert(pth: str, workdir: str, config: str | None = None, ema: bool = True,
             angles: str | None = None, data_dir: str | None = None) -> str:
   """Writes the run directory ``workdir`` for an authors' checkpoint."""
-  from dusty_jax import configs, generator, trainer
-  from dusty_jax.data import arrays
   if not os.path.isfile(pth):
     raise FileNotFoundError(f'{pth}: no such file')
   if pth.endswith('.npz'):

@@ -5,7 +5,8 @@
 
 Samples from the EMA generator, compares with the test split of the run's
 dataset, and prints mean +- std over seeds, with the "training set" row
-(train vs test) for reference. ``--protocol paper`` computes as the
+(train vs test) for reference: dusty_jax/evaluation.py's ``synthesis``, the
+function benchmarks call too. ``--protocol paper`` computes as the
 authors' code does, test subset included (values to set beside the paper's
 Table II; see dusty_jax/metrics/protocol.py); the default, ``reference``,
 follows the published metric definitions. evaluation.json records the
@@ -22,14 +23,12 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 
-import numpy as np
 from absl import flags
 
-from dusty_jax import tools
-
-SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
+from dusty_jax import evaluation, generator, tools
+from dusty_jax.data import arrays, pipeline
+from dusty_jax.metrics import protocol
 
 
 def main(argv=None):
@@ -54,12 +53,6 @@ def main(argv=None):
 
 
 def run(a):
-  import jax
-  import tqdm
-  from dusty_jax import codec, generator, metrics, sampling
-  from dusty_jax.data import arrays, pipeline
-  from dusty_jax.metrics import protocol
-
   if not os.path.isdir(a.workdir):
     raise ValueError(f'{a.workdir}: evaluation needs a run directory (its config names '
                      "the dataset; convert an authors' .pth with dusty_jax.tools.convert)")
@@ -68,56 +61,25 @@ def run(a):
     raise ValueError(f'{a.workdir}: no config.json, so no dataset to evaluate against')
   sensor = params.sensor
   d = pipeline.dataset_dir(config, sensor, log=print)
-  test = arrays.load_split(d, 'test', sensor)
-  ref = np.asarray(codec.encode(test[protocol.subset(len(test), a.num, a.protocol)],
-                                     sensor))
-  n = len(ref)
-  if n < a.num:
-    print(f'note: the test subset has {n} scans; evaluating {n} per set')
-  tol = a.tolerance if a.tolerance is not None else params.tolerance
+  split = lambda name: arrays.load_split(d, name, sensor)
+  tol = a.tolerance
   if a.tune:
-    if params.variant.has_measurability:
-      raise ValueError('--tune is for the baseline; DUSty needs no tolerance')
-    val = arrays.load_split(d, 'val', sensor)
-    val = np.asarray(codec.encode(val[protocol.subset(len(val), a.num, a.protocol)],
-                                       sensor))
-    gen = sampling.sample_scans(params, jax.random.key(0), len(val))
-    tol = protocol.tune_tolerance(val, gen, params.angles, sensor, a.tune_trials,
-                                  protocol=a.protocol)
+    tol = evaluation.tune_tolerance(params, split('val'), num=a.num, trials=a.tune_trials,
+                                    protocol_name=a.protocol)
     generator.set_tolerance(a.workdir, tol)
     print(f'tuned tolerance beta = {tol:.5f} (saved in the run: load_checkpoint '
           'now decodes with it)')
-  rows = {}
-  cache = {}
-  compare = lambda fake, seed, tolerance=0.0: metrics.compare(
-      ref, fake, params.angles, sensor=sensor, protocol=a.protocol,
-      num_points=a.points, seed=seed, tolerance=tolerance, cache=cache, progress=True)
-  results = {k: [] for k, _, _ in protocol.ROW_SCALES}
-  for seed in tqdm.trange(a.seeds, desc='seeds', file=sys.stderr):
-    gen = sampling.sample_scans(params, jax.random.key(SAMPLE_SEED + seed), n)
-    m = compare(gen, seed, tol)
-    for k in results:
-      results[k].append(m[k])
-  rows[f'{params.model}' + (f' (beta={tol:.4f})' if tol else '')] = results
-  if a.train_row:
-    train = arrays.load_split(d, 'train', sensor)
-    # The authors subsample the training split by the same rule and --num.
-    num_train = a.num if a.protocol == 'paper' else n
-    tr = np.asarray(codec.encode(
-        train[protocol.subset(len(train), num_train, a.protocol)], sensor))
-    m = compare(tr[:n], 0)
-    rows['training set'] = {k: [v] for k, v in m.items()}
-  table = protocol.format_table(rows)
-  print(f'protocol {a.protocol}: N = {n} clouds of {a.points} points, {a.seeds} seeds')
-  print(table)
+  rec = evaluation.synthesis(params, split('test'), split('train') if a.train_row else None,
+                             num=a.num, points=a.points, seeds=a.seeds,
+                             protocol_name=a.protocol, tolerance=tol, progress=True)
+  if rec['num'] < a.num:
+    print(f'note: the test subset has {rec["num"]} scans; evaluated {rec["num"]} per set')
+  print(f'protocol {a.protocol}: N = {rec["num"]} clouds of {a.points} points, '
+        f'{a.seeds} seeds')
+  print(protocol.format_table(rec['rows']))
   out = os.path.join(a.workdir, 'evaluation.json')
-  seeds = {'metric': list(range(a.seeds)),
-           'generator': [SAMPLE_SEED + s for s in range(a.seeds)],
-           'training_row_metric': 0}
   with open(out, 'w') as f:
-    json.dump({**protocol.provenance(a.protocol, n, a.points, seeds,
-                                     protocol.SUBSET_RULES[a.protocol], sensor),
-               'tolerance': tol, 'rows': rows}, f, indent=2)
+    json.dump(rec, f, indent=2)
   print(f'saved {out}')
 
 
