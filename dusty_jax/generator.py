@@ -133,7 +133,7 @@ def read_angles(workdir: str, sensor: SensorSpec, angles=None) -> np.ndarray:
   if isinstance(angles, str) and angles == 'nominal':
     return sensor.nominal_angles()
   if angles is not None:
-    from dusty_jax import authors
+    from dusty_jax import authors  # the .pth / .pt reader, only when one is given
     return authors.read_angles(angles, sensor)
   if not os.path.isfile(os.path.join(workdir, arrays.ANGLES)):
     raise FileNotFoundError(
@@ -179,7 +179,7 @@ def load(path: str, step: int | None = None, ema: bool = True,
         params = params.replace(angles=jnp.asarray(
             read_angles(path, params.sensor, angles), jnp.float32))
       return params, None
-    from dusty_jax import authors
+    from dusty_jax import authors  # the .pth reader, only when one is given
     fields, run_config = authors.load(path, config=config, ema=ema, angles=angles)
     return GeneratorParams(**fields), run_config
   if config is not None:

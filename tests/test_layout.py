@@ -164,11 +164,6 @@ def test_only_models_compares_model_names():
   assert not bad, f'model names compared outside models.py: {bad}'
 
 
-# Function-level imports still without their reason, in files being edited
-# elsewhere when this rule was added; each entry goes when its file's
-# imports move to the top or say why they wait.
-_LAZY_UNEXPLAINED = {'dusty_jax/generator.py', 'dusty_jax/tools/invert.py',
-                     'dusty_jax/pretrained/__init__.py'}
 
 
 def _unexplained_lazy_imports(path: str) -> list:
@@ -201,7 +196,6 @@ def test_lazy_imports_say_why():
   """Imports sit at the top of a module, so its first lines show what it
   depends on; one inside a function (import cost, an optional dependency,
   an order such as distributed init) says why on its line or the one above."""
-  bad = {rel: lines for p in _python_files('dusty_jax')
-         if (rel := os.path.relpath(p, REPO)) not in _LAZY_UNEXPLAINED
-         and (lines := _unexplained_lazy_imports(p))}
+  bad = {os.path.relpath(p, REPO): lines for p in _python_files('dusty_jax')
+         if (lines := _unexplained_lazy_imports(p))}
   assert not bad, f'function-level imports without a reason: {bad}'

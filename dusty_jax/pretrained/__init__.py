@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import os
 
+from dusty_jax import generator
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -31,12 +33,10 @@ def load_pretrained(name: str):
   path = path_of(name)
   if not os.path.isfile(path):
     raise ValueError(f'no pretrained model {name!r}; available: {available()}')
-  from dusty_jax import generator
   return generator.load_file(path)
 
 
 def export(params, name: str, source: str = '', directory: str = HERE) -> str:
   """Writes a GeneratorParams as ``NAME.npz`` (in this package by default);
   returns the path."""
-  from dusty_jax import generator
   return generator.export(params, os.path.join(directory, f'{name}.npz'), source)

@@ -62,7 +62,7 @@ def main(argv=None):
 
 def table_provenance(a, sensor, num: int) -> dict:
   """What metrics.json records of how its numbers were computed."""
-  from dusty_jax.metrics import protocol
+  from dusty_jax.metrics import protocol  # as run() does: --help needs no JAX
   points = ('every pixel, dropped ones at the origin' if a.protocol == 'paper'
             else 'every valid pixel')
   rule = (f'the first {a.num} scans of split {a.split!r}' if a.split
@@ -77,9 +77,11 @@ def run(a):
   import jax
   import tqdm
   import trimesh
+  # The library (and JAX) load once the flags are good: --help and a bad flag
+  # answer at once.
   from dusty_jax import codec, corrupt, generator, inversion, writers
-  from dusty_jax.data import arrays, pipeline, scan_files
-  from dusty_jax.metrics import protocol, reconstruction
+  from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
+  from dusty_jax.metrics import protocol, reconstruction  # (as above)
 
   if bool(a.input) == bool(a.split):
     raise ValueError('give exactly one of --input and --split')
@@ -87,7 +89,7 @@ def run(a):
     corrupt.parse(a.corrupt)
   params, config = generator.load(a.workdir)
   if a.init == 'encoder':
-    from dusty_jax import encoder
+    from dusty_jax import encoder  # only for this start
     encoder.check_has_encoder(params, a.workdir)
   sensor = params.sensor
   angles = np.asarray(params.angles)
@@ -147,7 +149,7 @@ def run(a):
   print(f'protocol {a.protocol}: {len(per_scan)} scans')
   print(protocol.format_table({label: mean}, reconstruction.COLUMNS))
   if measurability:
-    from dusty_jax.metrics import calibration
+    from dusty_jax.metrics import calibration  # only with ground truth
     comp = {k: float(np.nanmean(np.concatenate([c[k] for c in complete_err])))
             for k in complete_err[0]}
     cal = calibration.reliability(np.concatenate(measurability), 1.0 - truth[1])

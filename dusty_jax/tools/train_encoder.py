@@ -27,7 +27,7 @@ SAVE_EVERY = 250
 
 
 def main(argv=None):
-  from dusty_jax.encoder import TrainOptions
+  from dusty_jax.encoder import TrainOptions  # its defaults are the flags' defaults
   d = TrainOptions()
   f = flags.FlagValues()
   flags.DEFINE_string('workdir', None, 'training run directory', flag_values=f,
@@ -72,6 +72,7 @@ def _check_options(directory: str, opts) -> None:
 def train(workdir: str, opts, export: str = '') -> str:
   import jax
   import tqdm
+  # The library (and JAX) load once the flags are good.
   from dusty_jax import checkpoint, encoder, generator
 
   if not os.path.isdir(workdir):
