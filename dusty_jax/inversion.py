@@ -182,10 +182,9 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     num_steps: optimisation steps (1000 as in the paper); 0 returns the
       start itself (with ``init='encoder'``: the encoder's answer alone).
     init: where the search starts: a name in ``STARTS`` (``'random'``, the
-      authors' start, drawn from each scan's key; ``'encoder'``, the
-      generator's encoder, trained by ``python -m
-      dusty_jax.tools.train_encoder``), or given latents (B, d) (one per
-      scan, (d,) for a 2-D scan), projected onto the sphere.
+      authors' start, drawn from each scan's key; ``'encoder'``, the answer
+      of the generator's encoder, see encoder.py), or given latents (B, d)
+      (one per scan, (d,) for a 2-D scan), projected onto the sphere.
     loss: the objective ``loss(x_tilde, target, mask) -> scalar`` of one
       scan (default :func:`objective`, the authors' masked L1); a hashable
       function, as jit keys its compilation on it.

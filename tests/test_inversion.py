@@ -170,8 +170,10 @@ def test_bad_inputs_get_clear_errors(gen, tiny):
   depth, _ = codec.decode(t, gen.sensor)
   with pytest.raises(ValueError, match=r'outside the normalised inverse depth.*codec\.encode'):
     inversion.invert(gen, depth, num_steps=2)  # metres by mistake
-  with pytest.raises(ValueError, match='num_steps'):
-    inversion.invert(gen, t, num_steps=0)
+  with pytest.raises(ValueError, match='num_steps=-1'):
+    inversion.invert(gen, t, num_steps=-1)
+  with pytest.raises(ValueError, match='num_steps=2.5'):
+    inversion.invert(gen, t, num_steps=2.5)
   with pytest.raises(ValueError, match='mask of shape'):
     inversion.invert(gen, t, mask=np.ones((3, 3), bool), num_steps=2)
   with pytest.raises(TypeError, match=r'jax\.random\.key\(3\)'):
@@ -293,7 +295,7 @@ def test_given_start_equals_random_start_and_is_checked(gen):
   np.testing.assert_allclose(one['latent'], a['latent'][0], rtol=1e-5, atol=1e-5)
   with pytest.raises(ValueError, match=r'init latents of shape \(2, \d+\): expected \(3, '):
     inversion.invert(gen, scans, num_steps=1, init=z0[:2])
-  with pytest.raises(ValueError, match=r"init='encoderr': known starts are \['random'\]"):
+  with pytest.raises(ValueError, match=r"init='encoderr': known starts are \['encoder', 'random'\]"):
     inversion.invert(gen, scans, num_steps=1, init='encoderr')
 
 
