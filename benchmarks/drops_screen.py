@@ -153,10 +153,10 @@ def merge(a):
     with open(path) as f:
       r = json.load(f)
     for name, v in r['results'].items():
-      results[f'{name} ({r["steps"]} steps)' if name in results else name] = \
-          dict(v, steps=r['steps'])
-    sources.append(dict(file=os.path.basename(path), steps=r['steps'],
-                        machine=r['machine']['banner']))
+      steps = v.get('steps', r.get('steps'))  # a merged file keeps each result's
+      results[f'{name} ({steps} steps)' if name in results else name] = dict(v, steps=steps)
+    sources += r.get('sources') or [dict(file=os.path.basename(path), steps=r['steps'],
+                                         machine=r['machine']['banner'])]
   for item in [r for r in a.runs.split(',') if r]:
     name, run = item.split('=', 1)
     c = {k: [] for k in ('step', 'drop_rate', 'real_drop_rate', 'd_real', 'd_fake')}

@@ -573,8 +573,14 @@ def main(argv=None):
     from dusty_jax import pretrained
     for m, name in EXPORT_NAMES.items():
       if m in params_by_model and m not in seeded:
+        config = dusty_jax.load_checkpoint(os.path.join(a.workdir, m))[1]
+        training = {'config': f'experiments/study_{m}.py', 'scale': a.scale,
+                    'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
+                    'augment': config.augment, 'drops': config.drops.to_dict(),
+                    'beyond_the_paper': bool(m.endswith('_drops'))}
         path = pretrained.export(params_by_model[m], name,
-                                 source=f'benchmarks/study.py --scale {a.scale} ({m})')
+                                 source=f'benchmarks/study.py --scale {a.scale} ({m})',
+                                 training=training)
         print(f'exported {path} ({os.path.getsize(path) / 1e6:.2f} MB)')
 
 

@@ -216,10 +216,15 @@ def check(params: GeneratorParams, source: str = 'generator'):
                      f'{params.sensor.shape})')
 
 
-def export(params: GeneratorParams, path: str, source: str = '') -> str:
+def export(params: GeneratorParams, path: str, source: str = '',
+           training: dict | None = None) -> str:
   """Writes a generator as one ``.npz`` (variables, angles, description,
-  and its encoder if it has one, under ``encoder/``)."""
+  and its encoder if it has one, under ``encoder/``). ``training``: how it
+  was trained (config file, options beyond the paper, steps), kept in the
+  file's ``meta`` for :func:`read_meta`."""
   meta = dict(describe(params.sensor, params.settings, params.tolerance), source=source)
+  if training:
+    meta['training'] = training
   flat = traverse_util.flatten_dict(params.variables, sep='/')
   arrs = {f'variables/{k}': np.asarray(v, np.float32) for k, v in flat.items()}
   if params.encoder is not None:
@@ -228,6 +233,13 @@ def export(params: GeneratorParams, path: str, source: str = '') -> str:
   np.savez_compressed(path, meta=np.asarray(json.dumps(meta)),
                       angles=np.asarray(params.angles, np.float32), **arrs)
   return path
+
+
+def read_meta(path: str) -> dict:
+  """The description an exported ``.npz`` carries (sensor, settings,
+  tolerance, source, training, encoder settings), without loading arrays."""
+  with np.load(path, allow_pickle=False) as f:
+    return json.loads(str(f['meta']))
 
 
 def load_file(path: str) -> GeneratorParams:

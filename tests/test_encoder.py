@@ -96,7 +96,7 @@ def test_loss_terms_match_their_definition(trained):
   params, _ = dusty_jax.load_checkpoint(trained)
   opts = encoder.TrainOptions(w_latent=2.0, w_rec=0.5)
   z, inputs, target = encoder.samples(params, jax.random.key(3), 4, opts)
-  total, (lat, rec) = encoder.loss_fn(params.encoder, params, z, inputs, target, opts)
+  total, (lat, rec, real) = encoder.loss_fn(params.encoder, params, z, inputs, target, opts)
   e = np.asarray(encoder.encode(params, inputs), np.float64)
   zz = np.asarray(z, np.float64)
   d = params.latent_dim
@@ -106,6 +106,14 @@ def test_loss_terms_match_their_definition(trained):
   x = np.tanh(np.asarray(params.module().apply(params.variables, e.astype(np.float32)))[..., 0])
   np.testing.assert_allclose(float(rec), np.abs(x - np.asarray(target)).mean(), rtol=1e-4)
   np.testing.assert_allclose(float(total), 2.0 * float(lat) + 0.5 * float(rec), rtol=1e-6)
+  assert float(real) == 0.0  # no real scans given
+  # The real-scan term is the inversion's objective, scan by scan.
+  x = jnp.tanh(params.module().apply(params.variables, encoder.encode(params, inputs))[..., 0])
+  want = np.mean([float(inversion.objective(x[i], target[i], target[i] > ALPHA))
+                  for i in range(len(x))])
+  _, (_, _, got) = encoder.loss_fn(params.encoder, params, z, inputs, target, opts,
+                                   real_inputs=inputs, real=target)
+  np.testing.assert_allclose(float(got), want, rtol=1e-5)
 
 
 def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):

@@ -36,7 +36,17 @@ def load_pretrained(name: str):
   return generator.load_file(path)
 
 
-def export(params, name: str, source: str = '', directory: str = HERE) -> str:
+def describe(name: str) -> dict:
+  """What the shipped ``name`` says of itself: sensor, model settings,
+  tolerance, source and how it was trained (``training``)."""
+  if not os.path.isfile(path_of(name)):
+    raise ValueError(f'no pretrained model {name!r}; available: {available()}')
+  return generator.read_meta(path_of(name))
+
+
+def export(params, name: str, source: str = '', directory: str = HERE,
+           training: dict | None = None) -> str:
   """Writes a GeneratorParams as ``NAME.npz`` (in this package by default);
   returns the path."""
-  return generator.export(params, os.path.join(directory, f'{name}.npz'), source)
+  return generator.export(params, os.path.join(directory, f'{name}.npz'), source,
+                          training)

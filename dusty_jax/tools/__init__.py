@@ -5,6 +5,7 @@
     python -m dusty_jax.tools.evaluate     Table II synthesis metrics of a run
     python -m dusty_jax.tools.invert       GAN inversion: reconstruct, restore, Table III
     python -m dusty_jax.tools.convert      an authors' .pth -> a run directory
+    python -m dusty_jax.tools.train_encoder  the encoder that starts inversion (encoder.py)
 
 Training stays ``python -m dusty_jax.train --config experiments/NAME.py``.
 Every tool takes absl flags (``--name=value`` or ``--name value``;

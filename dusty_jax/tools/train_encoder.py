@@ -18,6 +18,7 @@ import os
 import sys
 import time
 
+import numpy as np
 from absl import flags
 
 from dusty_jax import tools
@@ -41,12 +42,18 @@ def main(argv=None):
                      lower_bound=0, flag_values=f)
   flags.DEFINE_float('w_rec', d.w_rec, 'weight of the L1 of x_tilde through G',
                      lower_bound=0, flag_values=f)
+  flags.DEFINE_float('w_real', d.w_real, "weight of the inversion's objective on the "
+                     "run's training scans (0: G's samples only)", lower_bound=0,
+                     flag_values=f)
+  flags.DEFINE_integer('real_batch', d.real_batch, 'training scans per step',
+                       lower_bound=1, flag_values=f)
   flags.DEFINE_integer('seed', d.seed, 'random seed', flag_values=f)
   flags.DEFINE_string('export', '', 'also write generator + encoder as this .npz',
                       flag_values=f)
   tools.parse(f, argv, __doc__)
   opts = TrainOptions(steps=f.steps, batch=f.batch, lr=f.lr, w_latent=f.w_latent,
-                      w_rec=f.w_rec, seed=f.seed)
+                      w_rec=f.w_rec, w_real=f.w_real, real_batch=f.real_batch,
+                      seed=f.seed)
   path = tools.run(train, f.workdir, opts, f.export)
   print(f'wrote {path}')
 
@@ -69,6 +76,18 @@ def _check_options(directory: str, opts) -> None:
       json.dump(mine, fh, indent=2)
 
 
+def _training_scans(workdir: str, config, sensor):
+  """The run's training split, normalised inverse depth (N, H, W)."""
+  # The data pipeline only when the real-scan term is on.
+  from dusty_jax import codec
+  from dusty_jax.data import arrays, pipeline  # (as above)
+  if config is None:
+    raise ValueError(f'{workdir}: no config.json naming its dataset; the real-scan '
+                     'term needs it (or give --w_real 0)')
+  d = pipeline.dataset_dir(config, sensor, log=lambda m: None)
+  return np.asarray(codec.encode(arrays.load_split(d, 'train', sensor), sensor))
+
+
 def train(workdir: str, opts, export: str = '') -> str:
   import jax
   import tqdm
@@ -78,8 +97,9 @@ def train(workdir: str, opts, export: str = '') -> str:
   if not os.path.isdir(workdir):
     raise FileNotFoundError(f'{workdir}: not a training run directory (an exported '
                             '.npz holds no training state to add an encoder to)')
-  params, _ = generator.load(workdir)
+  params, config = generator.load(workdir)
   params = params.replace(encoder=None, encoder_settings=None)
+  real = _training_scans(workdir, config, params.sensor) if opts.w_real > 0 else None
   directory = os.path.join(workdir, 'encoder')
   _check_options(directory, opts)
   settings = encoder.EncoderSettings()
@@ -98,8 +118,12 @@ def train(workdir: str, opts, export: str = '') -> str:
                                        jax.local_devices()[0])
   t0, metrics = time.time(), {}
   for i in range(start, opts.steps):
+    batch = None
+    if real is not None:
+      pick = np.random.default_rng((opts.seed, i)).integers(0, len(real), opts.real_batch)
+      batch = real[pick]
     enc_vars, opt_state, metrics = encoder.train_step(
-        params, enc_vars, opt_state, jax.random.fold_in(key, i), opts)
+        params, enc_vars, opt_state, jax.random.fold_in(key, i), opts, real=batch)
     if (i + 1) % 50 == 0 or i + 1 == opts.steps:
       bar.set_postfix({k: f'{float(v):.4f}' for k, v in metrics.items()})
     if (i + 1) % SAVE_EVERY == 0 or i + 1 == opts.steps:
