@@ -233,21 +233,7 @@ def test_cli_config_error_is_one_line(tmp_path):
 def test_damaged_latest_checkpoint_falls_back(smoke_run, tmp_path, damage):
   config, workdir, _ = smoke_run
   copy = tmp_path / 'copy'
-  shutil.copytree(workdir, copy)
-  latest = copy / 'checkpoints' / '4'
-  if damage == 'empty':
-    shutil.rmtree(latest)
-    latest.mkdir()
-  elif damage == 'metadata':
-    (latest / '_CHECKPOINT_METADATA').unlink()
-    for p in latest.rglob('_METADATA'):
-      p.unlink()
-  else:
-    # Every array data file cut short. (Cutting one file may leave the
-    # generator's arrays intact, and loading it alone then rightly succeeds.)
-    for p in latest.rglob('*'):
-      if p.is_file() and p.parent.name == 'd' and p.stat().st_size > 512:
-        p.write_bytes(p.read_bytes()[:p.stat().st_size // 3])
+  _damaged_copy(workdir, copy, damage)
   messages = []
   params, _ = dusty_jax.load_checkpoint(str(copy))  # falls back to step 2
   ref, _ = dusty_jax.load_checkpoint(str(workdir), step=2)
