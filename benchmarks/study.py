@@ -152,19 +152,17 @@ def load_data(config, sensor):
   return d, split
 
 
-def invert_batched(params, target, steps, key, batch=16, desc='inverting'):
-  import jax
-  import tqdm
-  from dusty_jax import inversion
-  outs = []
-  for s in tqdm.trange(0, len(target), batch, desc=desc, file=sys.stderr):
-    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(
-        np.arange(s, min(s + batch, len(target))))
-    res = inversion.invert(params, target[s:s + batch], key=keys, num_steps=steps)
-    outs.append(jax.device_get({k: res[k] for k in
-                                ('inv_depth', 'measurability', 'scan', 'points',
-                                 'valid', 'loss')}))
-  return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+def invert_all(params, depth, steps, seed, corruption='', desc='inverting'):
+  """Every scan of ``depth`` (metres) restored by the library
+  (evaluation.restore_batches: per-scan draws of ``seed``), concatenated:
+  the corrupted targets and invert's result."""
+  from dusty_jax import evaluation
+  batches = list(evaluation.restore_batches(params, depth, corruption=corruption,
+                                            num_steps=steps, seed=seed, progress=True,
+                                            desc=desc))
+  keep = ('inv_depth', 'measurability', 'scan', 'points', 'valid', 'loss')
+  res = {k: np.concatenate([b[4][k] for b in batches]) for k in keep}
+  return np.concatenate([b[3] for b in batches]), res
 
 
 def renders_drop(params, inv_depth):
@@ -174,46 +172,29 @@ def renders_drop(params, inv_depth):
 
 
 def synthesis(params, config, split, a):
-  import jax
-  from dusty_jax import codec, sampling
-  from dusty_jax.metrics import protocol
-  sensor = params.sensor
+  """Table II by the library (evaluation.synthesis, as the evaluate tool), the
+  baseline's beta tuned on as many validation scans first."""
+  from dusty_jax import evaluation
   test = split('test')
-  ref = np.asarray(codec.encode(test[protocol.evenly(len(test), a.num_synthesis)],
-                                     sensor))
-  n = len(ref)
+  n = min(a.num_synthesis, len(test))
   tol = 0.0
   if not params.variant.has_measurability:
-    val = split('val')
-    val = np.asarray(codec.encode(val[protocol.evenly(len(val), n)], sensor))
-    gen = sampling.sample_scans(params, jax.random.key(0), len(val))
-    tol = protocol.tune_tolerance(val, gen, params.angles, sensor, a.tune_trials,
-                                  points=a.points)
-  rows = {k: [] for k, _, _ in protocol.ROW_SCALES}
-  cache = {}
-  for seed in range(a.seeds):
-    gen = sampling.sample_scans(params, jax.random.key(1000 + seed), n)
-    m = protocol.compare(ref, gen, params.angles, sensor=sensor, num_points=a.points,
-                         seed=seed, tolerance=tol, cache=cache, progress=True)
-    for k in rows:
-      rows[k].append(float(m[k]))
-  train = split('train')
-  tr = np.asarray(codec.encode(train[protocol.evenly(len(train), n)], sensor))
-  m = protocol.compare(ref, tr, params.angles, sensor=sensor, num_points=a.points,
-                       seed=0, cache=cache)
-  return {'rows': rows, 'train_row': {k: float(v) for k, v in m.items()},
-          'num': n, 'points': a.points, 'seeds': a.seeds, 'tolerance': tol}
+    tol = evaluation.tune_tolerance(params, split('val'), num=n, trials=a.tune_trials,
+                                    points=a.points)
+  rec = evaluation.synthesis(params, test, split('train'), num=n, points=a.points,
+                             seeds=a.seeds, tolerance=tol, progress=True)
+  rows = rec['rows'][evaluation.row_label(params, tol)]
+  train_row = {k: v[0] for k, v in rec['rows'][evaluation.TRAINING_ROW].items()}
+  return {'rows': rows, 'train_row': train_row, 'num': rec['num'], 'points': a.points,
+          'seeds': a.seeds, 'tolerance': tol}
 
 
 def disentangle(params, split, a, name):
-  import jax
-  from dusty_jax import codec
   from dusty_jax.metrics import ground_truth
   sensor = params.sensor
   idx = np.arange(min(a.num_invert, len(split('test'))))
   obs, comp, prob = (split('test', k)[idx] for k in ('', 'complete', 'drop_prob'))
-  res = invert_batched(params, np.asarray(codec.encode(obs, sensor)),
-                       a.invert_steps, jax.random.key(0), desc=f'{name}: inverting')
+  _, res = invert_all(params, obs, a.invert_steps, seed=0, desc=f'{name}: inverting')
   out = ground_truth.disentanglement(
       sensor, res['inv_depth'], res['measurability'], obs, comp, prob,
       renders_drop=renders_drop(params, res['inv_depth']))
@@ -224,8 +205,7 @@ def disentangle(params, split, a, name):
 
 
 def restoration(params, split, a, name):
-  import jax
-  from dusty_jax import codec, corrupt
+  from dusty_jax import codec
   from dusty_jax.metrics import ground_truth, reconstruction
   sensor = params.sensor
   n = min(a.num_restore, len(split('test')))
@@ -233,10 +213,8 @@ def restoration(params, split, a, name):
   clean = np.asarray(codec.encode(obs, sensor))
   out = {}
   for spec in CORRUPTIONS:
-    key = jax.random.key(7)
-    target = np.asarray(corrupt.apply(spec, key, clean, sensor))
-    res = invert_batched(params, target, a.invert_steps, key,
-                         desc=f'{name}: {spec}')
+    target, res = invert_all(params, obs, a.invert_steps, seed=7, corruption=spec,
+                             desc=f'{name}: {spec}')
     errs = reconstruction.errors(obs, res, np.asarray(params.angles), sensor)
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}
     surface = np.asarray(codec.valid_depth(comp, sensor))

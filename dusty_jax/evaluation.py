@@ -1,11 +1,13 @@
-"""Evaluation as library code: the paper's Table II (synthesis) of a trained
-generator against a dataset's splits.
+"""Evaluation as library code: the paper's Table II (synthesis) and Table
+III (restoration by GAN inversion) of a trained generator.
 
-The evaluate tool calls :func:`synthesis` (and :func:`tune_tolerance` for
-the baseline's beta), as benchmarks should, so that two reports of one
-metric cannot differ by a subset rule, a seed or a training-set row. The
-test subset follows the protocol (metrics/protocol.py: ``subset``); the
-generated set of seed s is sampled with ``key(SAMPLE_SEED + s)``.
+The tools call :func:`synthesis` (and :func:`tune_tolerance` for the
+baseline's beta) and :func:`restoration`, as benchmarks do, so that two
+reports of one metric cannot differ by a subset rule, a seed or a
+training-set row. The test subset follows the protocol
+(metrics/protocol.py: ``subset``); the generated set of seed s is sampled
+with ``key(SAMPLE_SEED + s)``. Restoration draws per scan
+(:data:`RESTORE_KEYS`), so its numbers do not depend on the batch size.
 """
 
 from __future__ import annotations
@@ -16,12 +18,15 @@ import jax
 import numpy as np
 import tqdm
 
-from dusty_jax import codec, sampling
+from dusty_jax import codec, corrupt, inversion, sampling
 from dusty_jax.generator import GeneratorParams
-from dusty_jax.metrics import protocol
+from dusty_jax.metrics import calibration, protocol, reconstruction
 
 SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
 TRAINING_ROW = 'training set'  # the label of the train vs test row
+RESTORE_KEYS = ('k_corrupt, k_search = split(key(seed)); scan i of the set is '
+                'corrupted with fold_in(k_corrupt, i) and its search starts from '
+                'fold_in(k_search, i), whatever the batch')
 
 
 def encoded_subset(depth, num: int, protocol_name: str, sensor) -> np.ndarray:
@@ -97,3 +102,121 @@ def synthesis(params: GeneratorParams, test, train=None, *, num: int = 5000,
   return {**protocol.provenance(protocol_name, n, points, provenance_seeds,
                                 protocol.SUBSET_RULES[protocol_name], sensor),
           'tolerance': tol, 'rows': rows}
+
+
+def restore_batches(params: GeneratorParams, depth, *, corruption: str = '',
+                    num_steps: int = 1000, init='random', batch: int = 16,
+                    seed: int = 0, progress: bool = False, desc: str = 'inverting'):
+  """Restores scans of metric depth by GAN inversion, a batch at a time.
+
+  Args:
+    params: a trained generator.
+    depth: (N, H, W) metres, 0 (or NaN, inf) where there is no return; any
+      sequence of scans that slices (a memory-mapped split is read a batch
+      at a time).
+    corruption: a corrupt.py spec (``drop:0.9``, ``beams:8``,
+      ``noise:0.01``) applied to the encoded scans first; '' for none.
+    num_steps, init: of ``inversion.invert``.
+    batch: scans inverted together (the results do not depend on it).
+    seed: the draws of corruption and search (:data:`RESTORE_KEYS`).
+
+  Yields:
+    (start, depth, clean, target, result) per batch: the index of its first
+    scan, its metric depth (NaN and inf as 0), the encoded scans, the
+    corrupted ones and ``invert``'s result (numpy).
+  """
+  if corruption:
+    corrupt.parse(corruption)
+  if batch < 1:
+    raise ValueError(f'batch={batch!r}: must be a whole number >= 1')
+  sensor = params.sensor
+  k_corrupt, k_search = jax.random.split(jax.random.key(seed))
+  draws = lambda k, idx: jax.vmap(lambda i: jax.random.fold_in(k, i))(idx)
+  corrupt_one = lambda k, scan: corrupt.apply(corruption, k, scan, sensor)
+  for start in tqdm.trange(0, len(depth), batch, desc=desc, unit='batch',
+                           file=sys.stderr, disable=not progress):
+    d = np.nan_to_num(np.asarray(depth[start:start + batch], np.float32),
+                      nan=0.0, posinf=0.0, neginf=0.0)
+    idx = np.arange(start, start + len(d))
+    clean = np.asarray(codec.encode(d, sensor))
+    target = (np.asarray(jax.vmap(corrupt_one)(draws(k_corrupt, idx), clean))
+              if corruption else clean)
+    res = jax.device_get(inversion.invert(params, target, key=draws(k_search, idx),
+                                          num_steps=num_steps, init=init))
+    yield start, d, clean, target, res
+
+
+def finite_mean(values):
+  """The mean of the finite values, or None where there is none (a table
+  prints n/a; JSON holds null): a scan without a valid point has no Chamfer
+  distance, and a mean must not turn NaN for it."""
+  v = np.asarray(values, np.float64).ravel()
+  v = v[np.isfinite(v)]
+  return float(v.mean()) if v.size else None
+
+
+def restoration(params: GeneratorParams, depth, *, corruption: str = '',
+                num_steps: int = 1000, init='random', batch: int = 16, seed: int = 0,
+                protocol_name: str = 'reference', names=None, truth=None,
+                subset: str = 'every scan given', each=None,
+                progress: bool = False) -> dict:
+  """Table III of a generator: scans restored by GAN inversion, scored
+  against the scans before corruption.
+
+  Args:
+    params, depth, corruption, num_steps, init, batch, seed: as
+      :func:`restore_batches`.
+    protocol_name: the Chamfer distance's: 'reference' over valid points,
+      'paper' as the authors (every pixel, dropped ones at the origin).
+    names: a name per scan for the record (default its index).
+    truth: (complete depth, drop probability) of the same scans, which only
+      a simulator has; adds ``ground_truth``: x_tilde's errors against the
+      complete depth, and the measurability's calibration.
+    subset: how the scans were chosen, for the record.
+    each: called as ``each(start, clean, target, result)`` per batch (the
+      invert tool writes its files there).
+
+  Returns:
+    The result record (what the tool's metrics.json holds): the provenance,
+    ``mean`` (a column's mean over the scans where it is finite; None where
+    none is), ``per_scan`` (name, the columns, final loss), ``corrupt``,
+    ``steps``, ``init`` and, with ``truth``, ``ground_truth``.
+  """
+  sensor = params.sensor
+  angles = np.asarray(params.angles)
+  names = list(range(len(depth))) if names is None else list(names)
+  if len(names) != len(depth):
+    raise ValueError(f'{len(names)} names for {len(depth)} scans')
+  per_scan, measurability, complete = [], [], []
+  for start, d, clean, target, res in restore_batches(
+      params, depth, corruption=corruption, num_steps=num_steps, init=init,
+      batch=batch, seed=seed, progress=progress):
+    errs = reconstruction.errors(d, res, angles, sensor, protocol_name)
+    for i in range(len(d)):
+      per_scan.append({'name': names[start + i],
+                       **{k: float(v[i]) for k, v in errs.items()},
+                       'loss': float(res['loss'][i])})
+    if truth is not None:
+      sl = slice(start, start + len(d))
+      measurability.append(res['measurability'])
+      complete.append(reconstruction.completion_errors(res, truth[0][sl], sensor))
+    if each is not None:
+      each(start, clean, target, res)
+  columns = [k for k, _, _ in reconstruction.COLUMNS]
+  points = ('every pixel, dropped ones at the origin' if protocol_name == 'paper'
+            else 'every valid pixel')
+  seeds = {'seed': seed, 'batch': batch, 'keys': RESTORE_KEYS}
+  record = {**protocol.provenance(protocol_name, len(per_scan), points, seeds, subset,
+                                  sensor),
+            'mean': {k: finite_mean([r[k] for r in per_scan]) for k in columns},
+            'per_scan': per_scan, 'corrupt': corruption, 'steps': num_steps,
+            'init': init if isinstance(init, str) else 'given latents'}
+  if truth is not None and per_scan:
+    cal = calibration.reliability(np.concatenate(measurability),
+                                  1.0 - np.asarray(truth[1][:len(per_scan)]))
+    record['ground_truth'] = {
+        'complete_depth': {k: finite_mean(np.concatenate([c[k] for c in complete]))
+                           for k in complete[0]},
+        'ece': cal['ece'],
+        'reliability': {k: np.asarray(v).tolist() for k, v in cal.items() if k != 'ece'}}
+  return record

@@ -86,7 +86,8 @@ BAD = [
 
 
 @pytest.mark.parametrize('args, devices, status, says', BAD,
-                         ids=[re.sub(r'\W+', '_', str(a[0]))[:40] for a, *_ in BAD])
+                         ids=[re.sub(r'\W+', '_', getattr(a[0], '__name__', str(a[0])))[:40]
+                              for a, *_ in BAD])
 def test_bad_config_is_one_line(tmp_path, args, devices, status, says):
   args = [a(tmp_path) if callable(a) else a for a in args]
   res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE,

@@ -141,6 +141,7 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
   assert r.returncode == 0, r.stderr[-3000:]
   # Simulated data: also against the ground truth only a simulator has.
   assert 'x_tilde vs complete depth' in r.stdout and 'ECE' in r.stdout
+  assert 'nan' not in r.stdout.lower()  # the complete-depth table has no CD: n/a
   gt = json.load(open(out / 's' / 'metrics.json'))['ground_truth']
   assert 0 <= gt['ece'] <= 1 and np.isfinite(gt['complete_depth']['abs_rel'])
   assert (out / 's' / 'reliability.png').is_file()
@@ -390,3 +391,57 @@ def test_invert_cli_skips_encoded_scans_given_as_metres(smoke_run, tmp_path, cap
                       str(tmp_path / 'out2'), '--steps', '3'])
   assert e.value.code == 1
   assert 'encoded.npy' in capsys.readouterr().out
+
+
+def test_restoration_draws_per_scan_whatever_the_batch(gen):
+  """evaluation.restoration (Table III, what the invert tool prints): scan i
+  is corrupted with fold_in(k_corrupt, i) and searched from
+  fold_in(k_search, i), so two batch sizes give one record, equal to
+  corrupt.apply + invert called on that scan alone."""
+  from dusty_jax import evaluation
+  from dusty_jax.metrics import reconstruction
+  _, complete = _targets(gen, n=2, seed=11)
+  depth = np.asarray(codec.decode(complete, gen.sensor)[0])
+  kw = dict(corruption='drop:0.5', num_steps=8, seed=3, protocol_name='reference')
+  one = evaluation.restoration(gen, depth, batch=1, **kw)
+  two = evaluation.restoration(gen, depth, batch=2, **kw)
+  for a, b in zip(one['per_scan'], two['per_scan']):
+    assert a['name'] == b['name']
+    for k in ('abs_rel', 'cd', 'loss'):
+      assert a[k] == pytest.approx(b[k], rel=1e-3, abs=1e-6), k
+  k_corrupt, k_search = jax.random.split(jax.random.key(3))
+  i = 1
+  clean = codec.encode(depth[i], gen.sensor)
+  target = corrupt.apply('drop:0.5', jax.random.fold_in(k_corrupt, i), clean, gen.sensor)
+  res = jax.device_get(inversion.invert(gen, target[None], num_steps=8,
+                                        key=jax.random.fold_in(k_search, i)[None]))
+  errs = reconstruction.errors(depth[i:i + 1], res, np.asarray(gen.angles), gen.sensor)
+  assert one['per_scan'][i]['abs_rel'] == pytest.approx(float(errs['abs_rel'][0]), rel=1e-4)
+  assert one['per_scan'][i]['loss'] == pytest.approx(float(res['loss'][0]), rel=1e-3)
+  assert one['num'] == 2 and one['corrupt'] == 'drop:0.5' and one['seeds']['batch'] == 1
+  cols = [k for k, _, _ in reconstruction.COLUMNS]
+  for k in cols:
+    assert one['mean'][k] == pytest.approx(np.mean([r[k] for r in one['per_scan']]),
+                                           rel=1e-6)
+  json.dumps(one)
+
+
+def test_a_scan_with_nothing_to_compare_leaves_no_nan_in_the_table(gen):
+  """A scan with no valid return has no Chamfer distance: the mean is over
+  the scans that have one, an empty column is None (null in JSON), and the
+  table prints n/a, never nan."""
+  from dusty_jax import evaluation
+  from dusty_jax.metrics import protocol, reconstruction
+  _, complete = _targets(gen, n=2, seed=12)
+  depth = np.array(codec.decode(complete, gen.sensor)[0])
+  depth[1] = 0.0
+  with pytest.warns(UserWarning, match='no valid pixel'):
+    rec = evaluation.restoration(gen, depth, num_steps=2, names=['a', 'b'])
+  cd = [r['cd'] for r in rec['per_scan']]
+  assert np.isfinite(cd[0]) and np.isnan(cd[1])
+  assert rec['mean']['cd'] == pytest.approx(cd[0])
+  assert evaluation.finite_mean([np.nan, np.inf]) is None
+  table = protocol.format_table({'x': {**rec['mean'], 'cd': None},
+                                 'y': {'abs_rel': [np.nan, 0.5]}}, reconstruction.COLUMNS)
+  assert 'nan' not in table.lower() and table.count('n/a') == 1 + 7
+  assert '0.500' in table

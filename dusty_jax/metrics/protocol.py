@@ -171,16 +171,20 @@ def provenance(protocol: str, num: int, points, seeds, subset_rule: str,
 def format_table(rows: dict, columns=ROW_SCALES) -> str:
   """{label: {metric: value or [values over seeds]}} -> a table in the
   paper's layout (Table II by default; reconstruction.COLUMNS for Table
-  III): mean +- std where there are several values."""
+  III): mean +- std where there are several values. A metric a row lacks,
+  or holds only as None or NaN, prints n/a, never nan."""
   width = 18 if columns is ROW_SCALES else 12
   head = f'{"":24s}' + ''.join(f'{n:>{width}s}' for _, n, _ in columns)
   lines = [head, '-' * len(head)]
   for label, m in rows.items():
     cells = []
     for k, _, s in columns:
-      v = np.atleast_1d(np.asarray(m[k] if k in m else m[_LEGACY_KEYS[k]],
-                                   np.float64)) * s
-      cells.append(f'{np.nanmean(v):10.3f} +- {np.nanstd(v):5.3f}' if len(v) > 1
+      value = m.get(k, m.get(_LEGACY_KEYS.get(k)))
+      v = np.atleast_1d(np.asarray(value if value is not None else np.nan,
+                                   np.float64)).astype(np.float64) * s
+      v = v[np.isfinite(v)]
+      cells.append('n/a' if not v.size else
+                   f'{v.mean():10.3f} +- {v.std():5.3f}' if v.size > 1
                    else f'{v.mean():{width}.3f}')
     lines.append(f'{label:24s}' + ''.join(f'{c:>{width}s}' for c in cells))
   return '\n'.join(lines)

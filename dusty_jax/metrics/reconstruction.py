@@ -57,10 +57,9 @@ def errors(target_depth, result, angles, sensor: SensorSpec,
 
 def completion_errors(result, complete, sensor: SensorSpec) -> dict:
   """Errors of x_tilde against a simulator's complete depth (every pixel a
-  perfect sensor returns, dropped or not); no Chamfer column (NaN)."""
+  perfect sensor returns, dropped or not), per scan; no Chamfer column (a
+  table prints it n/a)."""
   pred = codec.complete_depth(result['inv_depth'], sensor)
   mask = np.asarray(codec.valid_depth(complete, sensor))
   out = depth_metrics.depth_errors(pred, complete, mask)
-  out = {k: np.asarray(v) for k, v in out.items() if k != 'count'}
-  out['cd'] = np.full(len(complete), np.nan)
-  return out
+  return {k: np.asarray(v) for k, v in out.items() if k != 'count'}
