@@ -8,6 +8,8 @@ Two implementations of each convolution, chosen per backend (``impl``):
     the CPU, XLA's convolution gradients (and the double-backward of the R1
     penalty) are several times slower than matmuls of the same size; written
     this way, forward, backward and double-backward are all plain matmuls.
+    One exception, measured: the generator's head (few output channels)
+    takes its gradient from ``lax.conv`` (``_up_few``).
   * ``'xla'``: ``lax.conv_general_dilated``, which maps to cuDNN on a GPU.
 Both compute the same function; tests check they agree.
 """
@@ -103,10 +105,7 @@ def conv_up(x, w, impl: str):
   h, wd = hp - 2, wp - 2
   cout = w.shape[3]
   if impl == 'xla':
-    # Transposed conv = conv of the 2-dilated input with the flipped kernel.
-    return lax.conv_general_dilated(
-        x, w[::-1, ::-1], (1, 1), ((0, 0), (0, 0)), lhs_dilation=(2, 2),
-        dimension_numbers=('NHWC', 'HWIO', 'NHWC'))[:, :2 * h, :2 * wd]
+    return _up_lax(x, w)
   if cout * COL2IM_RATIO > w.shape[2]:
     # im2col: per output phase, 2x2 patches of the padded input (4 * Cin)
     # times the phase's taps. Forward and backward are plain matmuls.
@@ -121,12 +120,36 @@ def conv_up(x, w, impl: str):
       phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
     y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
     return y.reshape(b, 2 * h, 2 * wd, cout)
-  # col2im, for few output channels (the generator's head): every input
-  # pixel's contribution to all 16 taps in one matmul (Cin -> 16 * Cout,
-  # far smaller than 16 * Cin of patches), then each output phase adds four
-  # shifted slices. The cylinder pad commutes with the per-pixel matmul, so
-  # it is applied to the product. (For wide outputs XLA's backward of the
-  # slices costs more than the patches save.)
+  # col2im, for few output channels (the generator's head); see _up_few.
+  return _up_few(x, w)
+
+
+def _up_lax(x, w):
+  """conv_up of an already padded input by ``lax.conv_general_dilated``: a
+  transposed conv is a conv of the 2-dilated input with the flipped kernel."""
+  h, wd = x.shape[1] - 2, x.shape[2] - 2
+  return lax.conv_general_dilated(
+      x, w[::-1, ::-1], (1, 1), ((0, 0), (0, 0)), lhs_dilation=(2, 2),
+      dimension_numbers=('NHWC', 'HWIO', 'NHWC'))[:, :2 * h, :2 * wd]
+
+
+@jax.custom_vjp
+def _up_few(x, w):
+  """conv_up of an already padded input with few output channels (the
+  generator's head), by col2im: every input pixel's contribution to all 16
+  taps in one matmul (Cin -> 16 * Cout, far smaller than 16 * Cin of
+  patches), then each output phase adds four shifted slices. The cylinder
+  pad commutes with the per-pixel matmul, so it is applied to the product.
+
+  Its gradient is lax.conv's (_up_lax, the same linear map): the transpose
+  of the strided slices of a (.., 4, 4, Cout) tensor with Cout = 2 is slow
+  on XLA's CPU backend (measured on a 2-core EPYC at the study's scale:
+  the head's VJP took 296 ms by col2im, 33 ms so; benchmarks/step_phases.py),
+  while the forward pass, all that sampling needs, is faster by col2im (3
+  ms against 8)."""
+  b, hp, wp, _ = x.shape
+  h, wd = hp - 2, wp - 2
+  cout = w.shape[3]
   x = x[:, 1:-1, 1:-1]
   z = _matmul(x, w.transpose(2, 0, 1, 3).reshape(w.shape[2], 16 * cout))
   z = cylinder_pad(z, 1, 1, 1, 1).reshape(b, hp, wp, 4, 4, cout)
@@ -143,6 +166,19 @@ def conv_up(x, w, impl: str):
     phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
   y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
   return y.reshape(b, 2 * h, 2 * wd, cout)
+
+
+def _up_few_fwd(x, w):
+  return _up_few(x, w), (x, w)
+
+
+def _up_few_bwd(residuals, cotangent):
+  # conv_up is linear in x and in w: under jit the forward pass that vjp
+  # traces is unused and removed.
+  return jax.vjp(_up_lax, *residuals)[1](cotangent)
+
+
+_up_few.defvjp(_up_few_fwd, _up_few_bwd)
 
 
 def blur_vh(x):

@@ -67,6 +67,18 @@ def test_conv_up_few_outputs_col2im_matches_brute_force(impl):
   # And its gradient agrees with the XLA path's.
   f = lambda impl: jax.grad(lambda x: jnp.sum(jnp.sin(layers.conv_up(x, w, impl))))(x)
   np.testing.assert_allclose(f('matmul'), f('xla'), rtol=1e-3, atol=1e-4)
+  # Its VJP (taken from lax.conv) is the adjoint of the brute-force map, in
+  # x and in w: <ct, f(dx, w)> = <vjp_x(ct), dx>, <ct, f(x, dw)> = <vjp_w(ct), dw>.
+  ct = rng.normal(size=want.shape).astype(np.float32)
+  dx, dw = rng.normal(size=x.shape), rng.normal(size=w.shape)
+  _, vjp = jax.vjp(lambda x, w: layers.conv_up(x, w, impl), jnp.asarray(x), jnp.asarray(w))
+  gx, gw = vjp(jnp.asarray(ct))
+  np.testing.assert_allclose(np.sum(gx * dx),
+                             np.sum(ct * _np_conv_transpose(_np_cylinder_pad(dx), w)),
+                             rtol=1e-4)
+  np.testing.assert_allclose(np.sum(gw * dw),
+                             np.sum(ct * _np_conv_transpose(_np_cylinder_pad(x), dw)),
+                             rtol=1e-4)
 
 
 @pytest.mark.parametrize('impl', ['matmul', 'xla'])
