@@ -15,7 +15,13 @@ question of whether the two commits compile the train step to the same
 program: it compiles a small DUSty-I step (R1 every step, and lazy R1) with
 each commit and compares XLA's optimised HLO instruction by instruction,
 names, numbers and source locations left out. Identical programs run at
-the same speed whatever the timings say.
+the same speed whatever the timings say. Where the programs differ,
+``--outputs`` shows whether they compute the same function: each commit
+computes, on the same inputs (DUSty-I, channels 16..64, batch 4), the generator's
+outputs and the gradients of G's loss, D's loss and the R1 penalty with
+respect to every parameter, and the largest difference relative to each
+array's largest magnitude is printed (float32 rounding: ~1e-6).
+``--scales study`` times the CPU study's scale instead of the paper's.
 """
 
 import argparse
@@ -25,6 +31,8 @@ import statistics
 import subprocess
 import sys
 import tempfile
+
+import numpy as np
 
 import common
 
@@ -42,7 +50,8 @@ def measure(tree: str, args, out: str) -> dict:
   env = dict(os.environ, PYTHONPATH=tree)
   cmd = [sys.executable, os.path.join(HERE, 'train_step.py'), '--out', out,
          '--impls', args.impls, '--variants', args.variants, '--repeats',
-         str(args.repeats), '--batch', str(args.batch), '--model', args.model]
+         str(args.repeats), '--model', args.model,
+         '--scales', args.scales]
   subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
   with open(out) as f:
     rows = json.load(f)['rows']
@@ -74,6 +83,53 @@ for line in text.splitlines():
 """
 
 
+# The same function? Outputs and gradients of a small DUSty-I on fixed
+# inputs, saved to an .npz (argv[1]).
+OUTPUTS_SNIPPET = r"""
+import sys, jax, jax.numpy as jnp, numpy as np
+from flax import traverse_util
+from dusty_jax import configs, losses, trainer
+from dusty_jax.sensor import get_sensor
+c = configs.default()
+c.model, c.impl, c.batch_size = 'dusty1', 'matmul', 4
+c.latent_dim, c.ch_base, c.ch_max = 32, 16, 64  # ch_base 16: the head's col2im path
+sensor = get_sensor('kitti')
+setup = trainer.make_setup(c, sensor)
+st = trainer.init_state(setup, jax.random.key(0))
+z = jax.random.normal(jax.random.key(1), (4, c.latent_dim))
+keys = jax.random.split(jax.random.key(2), 4)
+real = jax.random.uniform(jax.random.key(3), (4,) + sensor.shape, minval=-1.0)
+d = lambda p, x: setup.discriminator.apply(p, x)
+fake = lambda gp: trainer.fake_scans(setup, gp, z, keys)['scan']
+out = {'fake': fake(st.g_params)}
+grads = {
+    'g_loss': jax.grad(lambda gp: losses.g_loss(d(st.d_params, fake(gp))))(st.g_params),
+    'd_loss': jax.grad(lambda dp: losses.d_loss(d(dp, real), d(dp, fake(st.g_params))))(
+        st.d_params),
+    'r1': jax.grad(lambda dp: losses.r1_penalty(lambda x: d(dp, x), real))(st.d_params)}
+for name, g in grads.items():
+  for k, v in traverse_util.flatten_dict(g, sep='/').items():
+    out[f'{name}:{k}'] = v
+np.savez(sys.argv[1], **{k: np.asarray(v) for k, v in out.items()})
+"""
+
+
+def same_function(trees: dict, tmp: str) -> dict:
+  """{array: largest |after - before| / largest |before|} of OUTPUTS_SNIPPET."""
+  arrays = {}
+  for name, tree in trees.items():
+    path = os.path.join(tmp, f'{name}_outputs.npz')
+    env = dict(os.environ, PYTHONPATH=tree, JAX_PLATFORMS='cpu')
+    subprocess.run([sys.executable, '-c', OUTPUTS_SNIPPET, path], env=env, cwd=tree,
+                   check=True, capture_output=True, text=True)
+    arrays[name] = dict(np.load(path))
+  b, f = arrays['before'], arrays['after']
+  if set(b) != set(f):
+    raise RuntimeError(f'the commits compute different arrays: {sorted(set(b) ^ set(f))}')
+  return {k: float(np.abs(f[k] - b[k]).max() / max(np.abs(b[k]).max(), 1e-30))
+          for k in sorted(b)}
+
+
 def compiled_program(tree: str, r1_every: int) -> list:
   # In the tree: `python -c` puts the working directory ahead of PYTHONPATH.
   env = dict(os.environ, PYTHONPATH=tree, JAX_PLATFORMS='cpu')
@@ -95,8 +151,10 @@ def main():
   p.add_argument('--impls', default='matmul')
   p.add_argument('--variants', default='authors')
   p.add_argument('--model', default='dusty1')
-  p.add_argument('--batch', type=int, default=32)
   p.add_argument('--repeats', type=int, default=5)
+  p.add_argument('--scales', default='paper', choices=('paper', 'study'))
+  p.add_argument('--outputs', action='store_true',
+                 help='compare outputs and gradients on fixed inputs before timing')
   p.add_argument('--hlo', action='store_true',
                  help='compare the compiled programs (small step) before timing')
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'compare_commits.json'))
@@ -107,7 +165,7 @@ def main():
   print(f'before {revs["before"]} ({git("log", "-1", "--format=%s", a.before)[:60]})')
   print(f'after  {revs["after"]} ({git("log", "-1", "--format=%s", a.after)[:60]})')
   runs = {'before': [], 'after': []}
-  hlo = None
+  hlo = rel = None
   with tempfile.TemporaryDirectory() as tmp:
     trees = {}
     for name, rev in revs.items():
@@ -123,6 +181,11 @@ def main():
                 f'{len(progs["before"])} vs {len(progs["after"])} HLO instructions, '
                 f'{"identical" if same[r1_every] else "DIFFERENT"}', flush=True)
         hlo = {f'r1_every_{k}': v for k, v in same.items()}
+      if a.outputs:
+        rel = same_function(trees, tmp)
+        worst = max(rel, key=rel.get)
+        print(f'outputs and gradients (DUSty-I 16..64, {len(rel)} arrays): largest '
+              f'relative difference {rel[worst]:.2e} ({worst})', flush=True)
       for r in range(a.rounds):
         for name in ('before', 'after'):
           res = measure(trees[name], a, os.path.join(tmp, f'{name}_{r}.json'))
@@ -140,7 +203,7 @@ def main():
     print(f'{k}: before {b:.2f} s, after {f:.2f} s per step (median of {a.rounds} '
           f'rounds); after / before = {f / b:.3f}')
   common.write_json(a.out, dict(revisions=revs, args=vars(a), runs=runs, summary=summary,
-                                identical_hlo=hlo))
+                                identical_hlo=hlo, relative_difference=rel))
 
 
 if __name__ == '__main__':

@@ -157,23 +157,20 @@ def test_missing_dataset_message(tmp_path):
     trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
 
 
-def test_cli_overrides_and_bad_field(tmp_path):
+def test_cli_trains_with_overrides(tmp_path):
+  """The command line trains with --config.FIELD overrides (its bad fields
+  and missing data: test_cli.py's table)."""
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
   env.pop('XLA_FLAGS', None)
   cmd = [sys.executable, '-m', 'dusty_jax.train',
          '--config', os.path.join(HERE, '..', 'experiments', 'smoke.py'),
          '--workdir', str(tmp_path / 'w')]
-  bad = subprocess.run(cmd + ['--config.batchsize=4'], env=env,
-                       capture_output=True, text=True)
-  assert bad.returncode != 0 and 'batchsize' in bad.stderr
   ok = subprocess.run(cmd + ['--config.num_steps=2', '--config.log_every=1',
                              '--config.data.num_synthetic=8'],
                       env=env, capture_output=True, text=True, timeout=600)
   assert ok.returncode == 0, ok.stderr[-3000:]
   assert os.path.isdir(tmp_path / 'w' / 'checkpoints' / '2')
-  missing = subprocess.run(cmd + ['--config.data.dir=/nonexistent'], env=env,
-                           capture_output=True, text=True)
-  assert missing.returncode != 0 and 'dusty_jax.tools.prepare' in missing.stderr
+  assert json.load(open(tmp_path / 'w' / 'config.json'))['num_steps'] == 2
 
 
 def test_ema_rampup_follows_generator_early():
