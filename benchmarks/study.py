@@ -357,7 +357,7 @@ def picture_kitti(params, path):
 
 
 def table2(results):
-  from dusty_jax.metrics import protocol
+  from dusty_jax.metrics import records
   rows = {}
   for model, r in results.items():
     s = r['synthesis']
@@ -365,7 +365,7 @@ def table2(results):
     rows[label] = s['rows']
   first = next(iter(results.values()))['synthesis']
   rows['training set'] = {k: [v] for k, v in first['train_row'].items()}
-  return protocol.format_table(rows)
+  return records.format_table(rows)
 
 
 def md_table(header, rows):

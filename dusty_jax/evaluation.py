@@ -20,7 +20,7 @@ import tqdm
 
 from dusty_jax import codec, corrupt, inversion, sampling
 from dusty_jax.generator import GeneratorParams
-from dusty_jax.metrics import calibration, protocol, reconstruction
+from dusty_jax.metrics import calibration, protocol, reconstruction, records
 
 SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
 TRAINING_ROW = 'training set'  # the label of the train vs test row
@@ -99,7 +99,7 @@ def synthesis(params: GeneratorParams, test, train=None, *, num: int = 5000,
   provenance_seeds = {'metric': list(range(seeds)),
                       'generator': [SAMPLE_SEED + s for s in range(seeds)],
                       'training_row_metric': 0}
-  return {**protocol.provenance(protocol_name, n, points, provenance_seeds,
+  return {**records.provenance(protocol_name, n, points, provenance_seeds,
                                 protocol.SUBSET_RULES[protocol_name], sensor),
           'tolerance': tol, 'rows': rows}
 
@@ -206,7 +206,7 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
   points = ('every pixel, dropped ones at the origin' if protocol_name == 'paper'
             else 'every valid pixel')
   seeds = {'seed': seed, 'batch': batch, 'keys': RESTORE_KEYS}
-  record = {**protocol.provenance(protocol_name, len(per_scan), points, seeds, subset,
+  record = {**records.provenance(protocol_name, len(per_scan), points, seeds, subset,
                                   sensor),
             'mean': {k: finite_mean([r[k] for r in per_scan]) for k in columns},
             'per_scan': per_scan, 'corrupt': corruption, 'steps': num_steps,

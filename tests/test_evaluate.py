@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dusty_jax import codec, metrics
-from dusty_jax.metrics import chamfer, point_sets, protocol
+from dusty_jax.metrics import chamfer, point_sets, protocol, records
 
 HERE = os.path.dirname(__file__)
 
@@ -44,11 +44,11 @@ def test_compare_identical_and_separated_sets(tiny):
                     protocol='paper')
   with pytest.raises(ValueError, match='unknown protocol'):
     metrics.compare(x, far, angles, protocol='authors')
-  table = protocol.format_table({'a': {k: [v, v] for k, v in m2.items()}})
+  table = records.format_table({'a': {k: [v, v] for k, v in m2.items()}})
   assert 'JSD x1e2' in table and '+-' in table
   legacy = {('nna' if k == '1nna' else k): [v] for k, v in m2.items()}
-  assert protocol.format_table({'a': legacy}).splitlines()[-1] == \
-      protocol.format_table({'a': {k: [v] for k, v in m2.items()}}).splitlines()[-1]
+  assert records.format_table({'a': legacy}).splitlines()[-1] == \
+      records.format_table({'a': {k: [v] for k, v in m2.items()}}).splitlines()[-1]
 
 
 def test_compare_paper_protocol(tiny):
@@ -87,7 +87,7 @@ def test_subset_rules():
 
 
 def test_provenance_records_the_definition(tiny):
-  rec = protocol.provenance('paper', 12, 64, [0, 1], protocol.SUBSET_RULES['paper'], tiny)
+  rec = records.provenance('paper', 12, 64, [0, 1], protocol.SUBSET_RULES['paper'], tiny)
   assert rec['protocol'] == 'paper' and rec['num'] == 12 and rec['points'] == 64
   assert rec['seeds'] == [0, 1] and 'skip' in rec['subset']
   assert rec['sensor']['name'] == tiny.name and rec['sensor']['max_depth'] == 120.0

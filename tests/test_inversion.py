@@ -431,7 +431,7 @@ def test_a_scan_with_nothing_to_compare_leaves_no_nan_in_the_table(gen):
   the scans that have one, an empty column is None (null in JSON), and the
   table prints n/a, never nan."""
   from dusty_jax import evaluation
-  from dusty_jax.metrics import protocol, reconstruction
+  from dusty_jax.metrics import records, reconstruction
   _, complete = _targets(gen, n=2, seed=12)
   depth = np.array(codec.decode(complete, gen.sensor)[0])
   depth[1] = 0.0
@@ -441,7 +441,7 @@ def test_a_scan_with_nothing_to_compare_leaves_no_nan_in_the_table(gen):
   assert np.isfinite(cd[0]) and np.isnan(cd[1])
   assert rec['mean']['cd'] == pytest.approx(cd[0])
   assert evaluation.finite_mean([np.nan, np.inf]) is None
-  table = protocol.format_table({'x': {**rec['mean'], 'cd': None},
+  table = records.format_table({'x': {**rec['mean'], 'cd': None},
                                  'y': {'abs_rel': [np.nan, 0.5]}}, reconstruction.COLUMNS)
   assert 'nan' not in table.lower() and table.count('n/a') == 1 + 7
   assert '0.500' in table

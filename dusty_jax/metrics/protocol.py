@@ -25,7 +25,6 @@ through the angle table (as their generated clouds are).
 from __future__ import annotations
 
 import dataclasses
-import importlib.metadata
 
 import jax
 import numpy as np
@@ -37,9 +36,6 @@ from dusty_jax.sensor import SensorSpec, check_angles, tiny_sensor
 ROW_SCALES = (('jsd', 'JSD x1e2', 1e2), ('cov', 'COV %', 1e2),
               ('mmd', 'MMD x1e3', 1e3), ('1nna', '1-NNA %', 1e2),
               ('swd', 'SWD', 1.0))
-
-# Result files written before the metric was named '1nna' call it 'nna'.
-_LEGACY_KEYS = {'1nna': 'nna'}
 
 SUBSET_RULES = {
     'reference': 'np.unique(np.linspace(0, n - 1, min(num, n)).astype(int))',
@@ -145,49 +141,6 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
       '1nna': point_sets.one_nna(d_rr, d_rs, d_ss),
       'swd': swd.swd(jax.random.key(seed), real, fake, protocol=protocol)['swd_mean'],
   }
-
-
-def version() -> str:
-  """dusty_jax's installed version (an editable install's is its
-  pyproject.toml's at install time)."""
-  try:
-    return importlib.metadata.version('dusty_jax')
-  except importlib.metadata.PackageNotFoundError:
-    return 'unknown'
-
-
-def sensor_record(sensor: SensorSpec) -> dict:
-  return {'height': sensor.height, **sensor.to_dict()}
-
-
-def provenance(protocol: str, num: int, points, seeds, subset_rule: str,
-               sensor: SensorSpec, **extra) -> dict:
-  """What every result file records beside its numbers."""
-  return {'protocol': check_protocol(protocol), 'num': int(num), 'points': points,
-          'seeds': seeds, 'subset': subset_rule, 'sensor': sensor_record(sensor),
-          'dusty_jax_version': version(), **extra}
-
-
-def format_table(rows: dict, columns=ROW_SCALES) -> str:
-  """{label: {metric: value or [values over seeds]}} -> a table in the
-  paper's layout (Table II by default; reconstruction.COLUMNS for Table
-  III): mean +- std where there are several values. A metric a row lacks,
-  or holds only as None or NaN, prints n/a, never nan."""
-  width = 18 if columns is ROW_SCALES else 12
-  head = f'{"":24s}' + ''.join(f'{n:>{width}s}' for _, n, _ in columns)
-  lines = [head, '-' * len(head)]
-  for label, m in rows.items():
-    cells = []
-    for k, _, s in columns:
-      value = m.get(k, m.get(_LEGACY_KEYS.get(k)))
-      v = np.atleast_1d(np.asarray(value if value is not None else np.nan,
-                                   np.float64)).astype(np.float64) * s
-      v = v[np.isfinite(v)]
-      cells.append('n/a' if not v.size else
-                   f'{v.mean():10.3f} +- {v.std():5.3f}' if v.size > 1
-                   else f'{v.mean():{width}.3f}')
-    lines.append(f'{label:24s}' + ''.join(f'{c:>{width}s}' for c in cells))
-  return '\n'.join(lines)
 
 
 def tolerance_score(m: dict) -> float:

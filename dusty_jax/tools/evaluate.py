@@ -28,7 +28,7 @@ from absl import flags
 
 from dusty_jax import evaluation, generator, tools
 from dusty_jax.data import arrays, pipeline
-from dusty_jax.metrics import protocol
+from dusty_jax.metrics import records
 
 
 def main(argv=None):
@@ -76,7 +76,7 @@ def run(a):
     print(f'note: the test subset has {rec["num"]} scans; evaluated {rec["num"]} per set')
   print(f'protocol {a.protocol}: N = {rec["num"]} clouds of {a.points} points, '
         f'{a.seeds} seeds')
-  print(protocol.format_table(rec['rows']))
+  print(records.format_table(rec['rows']))
   out = os.path.join(a.workdir, 'evaluation.json')
   with open(out, 'w') as f:
     json.dump(rec, f, indent=2)

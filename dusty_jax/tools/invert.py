@@ -83,7 +83,7 @@ def run(a):
   # answer at once.
   from dusty_jax import corrupt, evaluation, generator, writers
   from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
-  from dusty_jax.metrics import protocol, reconstruction  # (as above)
+  from dusty_jax.metrics import reconstruction, records  # (as above)
 
   if bool(a.input) == bool(a.split):
     raise ValueError('give exactly one of --input and --split')
@@ -123,10 +123,10 @@ def run(a):
     json.dump(rec, f, indent=2)
   label = f'{params.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   print(f'protocol {a.protocol}: {rec["num"]} scans')
-  print(protocol.format_table({label: rec['mean']}, reconstruction.COLUMNS))
+  print(records.format_table({label: rec['mean']}, reconstruction.COLUMNS))
   gt = rec.get('ground_truth')
   if gt:
-    print(protocol.format_table({'x_tilde vs complete depth': gt['complete_depth']},
+    print(records.format_table({'x_tilde vs complete depth': gt['complete_depth']},
                                 reconstruction.COLUMNS))
     print(f'measurability vs true return probability: ECE {gt["ece"]:.4f}')
     bins = np.arange(len(gt['reliability']['pred']))
