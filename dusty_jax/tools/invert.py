@@ -81,7 +81,7 @@ def write_scan(stem: str, clean, target, res):
 def run(a):
   # The library (and JAX) load once the flags are good: --help and a bad flag
   # answer at once.
-  from dusty_jax import corrupt, evaluation, generator, writers
+  from dusty_jax import corrupt, evaluation, generator
   from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
   from dusty_jax.metrics import reconstruction, records  # (as above)
 
@@ -124,17 +124,25 @@ def run(a):
   label = f'{params.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   print(f'protocol {a.protocol}: {rec["num"]} scans')
   print(records.format_table({label: rec['mean']}, reconstruction.COLUMNS))
-  gt = rec.get('ground_truth')
-  if gt:
-    print(records.format_table({'x_tilde vs complete depth': gt['complete_depth']},
-                                reconstruction.COLUMNS))
-    print(f'measurability vs true return probability: ECE {gt["ece"]:.4f}')
-    bins = np.arange(len(gt['reliability']['pred']))
-    writers.line_plot(os.path.join(a.out, 'reliability.png'),
-                      {'measured': (bins, gt['reliability']['truth']),
-                       'predicted': (bins, gt['reliability']['pred'])},
-                      'bin of predicted measurability', 'return probability',
-                      title=f'ECE {gt["ece"]:.4f}')
+  if rec.get('ground_truth'):
+    report_ground_truth(rec['ground_truth'], a.out)
+
+
+def report_ground_truth(gt: dict, out: str):
+  """Prints x_tilde's errors against the complete depth and the
+  measurability's ECE; draws the reliability diagram."""
+  # As run(): loaded once the flags are good.
+  from dusty_jax import writers
+  from dusty_jax.metrics import reconstruction, records  # (as above)
+  print(records.format_table({'x_tilde vs complete depth': gt['complete_depth']},
+                             reconstruction.COLUMNS))
+  print(f'measurability vs true return probability: ECE {gt["ece"]:.4f}')
+  bins = np.arange(len(gt['reliability']['pred']))
+  writers.line_plot(os.path.join(out, 'reliability.png'),
+                    {'measured': (bins, gt['reliability']['truth']),
+                     'predicted': (bins, gt['reliability']['pred'])},
+                    'bin of predicted measurability', 'return probability',
+                    title=f'ECE {gt["ece"]:.4f}')
 
 
 if __name__ == '__main__':
