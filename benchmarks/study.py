@@ -14,7 +14,10 @@ drop probability are known, and writes the report:
     complete depth where the sensor dropped a surface (completion) and where
     it returned (fit); measurability against the truth (ECE, Brier, AUC);
   * restoration, Table III layout (drop 90%, 1 beam in 4, range noise),
-    against the clean scan and against the complete depth;
+    against the clean scan and against the complete depth (through the
+    library's evaluation.restore_batches: per-scan draws of seed 7; the
+    committed results/study.md predates that rule and drew one corruption
+    key(7) for the set, so a rerun moves its figures by the draws alone);
   * the speed/accuracy trade of inverting the trained DUSty-I;
   * pictures: samples, the reliability diagram, restorations, and a real
     KITTI scan (../shared/data/kitti-sample, if present) restored by DUSty-I.
