@@ -223,7 +223,10 @@ def main(argv=None):
     split = lambda s, kind='': arrays.load_split(d, s, sensor, kind)
     train = np.asarray(split('train')[:512])
     real_rings = ring_drop_rate(codec.encode(train, sensor))
-    cache = os.path.join(workdir, f'screen_eval_{a.num_invert}_{a.invert_steps}.json')
+    # Keyed by the training length too: a run continued to more steps is
+    # evaluated again.
+    cache = os.path.join(workdir, f'screen_eval_{a.num_invert}_{a.invert_steps}_'
+                                  f'step{a.steps}.json')
     if os.path.isfile(cache):
       ev = json.load(open(cache))
     else:
