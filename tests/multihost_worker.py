@@ -3,7 +3,8 @@
 import os
 import sys
 
-os.environ['XLA_FLAGS'] = '--xla_force_host_platform_device_count=1'
+os.environ['XLA_FLAGS'] = ('--xla_force_host_platform_device_count=1 '
+                           '--xla_backend_optimization_level=0')  # as conftest
 os.environ['JAX_PLATFORMS'] = 'cpu'
 
 import jax  # noqa: E402

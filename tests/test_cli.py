@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import FAST_COMPILE
 
 HERE = os.path.dirname(__file__)
 SMOKE = os.path.join(HERE, '..', 'experiments', 'smoke.py')
@@ -19,7 +20,7 @@ SMOKE = os.path.join(HERE, '..', 'experiments', 'smoke.py')
 def _env(tmp_path, devices=1):
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
   if devices == 1:
-    env.pop('XLA_FLAGS', None)
+    env['XLA_FLAGS'] = FAST_COMPILE  # one device
   return env
 
 

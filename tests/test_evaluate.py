@@ -12,6 +12,7 @@ import pytest
 
 from dusty_jax import codec, metrics
 from dusty_jax.metrics import chamfer, point_sets, protocol, records
+from conftest import FAST_COMPILE
 
 HERE = os.path.dirname(__file__)
 
@@ -100,7 +101,7 @@ def test_provenance_records_the_definition(tiny):
 def test_evaluate_cli(smoke_run, tmp_path):
   _, workdir, _ = smoke_run
   env = dict(os.environ)
-  env.pop('XLA_FLAGS', None)
+  env['XLA_FLAGS'] = FAST_COMPILE  # one device
   r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.evaluate', '--workdir', workdir,
                       '--num', '4', '--points', '32', '--seeds', '2'], env=env,
                      capture_output=True, text=True, timeout=600)

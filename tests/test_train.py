@@ -15,6 +15,7 @@ import pytest
 
 import dusty_jax
 from dusty_jax import configs, parallel, trainer
+from conftest import FAST_COMPILE
 from event_files import read_events, scalars
 from train_helpers import run_steps, tiny_config
 
@@ -56,7 +57,7 @@ def _run_two_processes(out):
     port = s.getsockname()[1]
   env = dict(os.environ, PYTHONPATH=os.pathsep.join(
       [os.path.join(HERE, '..'), os.environ.get('PYTHONPATH', '')]))
-  env.pop('XLA_FLAGS', None)
+  env['XLA_FLAGS'] = FAST_COMPILE  # one device
   procs = [subprocess.Popen([sys.executable, os.path.join(HERE, 'multihost_worker.py'),
                              str(port), str(i), out], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
@@ -161,7 +162,7 @@ def test_cli_trains_with_overrides(tmp_path):
   """The command line trains with --config.FIELD overrides (its bad fields
   and missing data: test_cli.py's table)."""
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
-  env.pop('XLA_FLAGS', None)
+  env['XLA_FLAGS'] = FAST_COMPILE  # one device
   cmd = [sys.executable, '-m', 'dusty_jax.train',
          '--config', os.path.join(HERE, '..', 'experiments', 'smoke.py'),
          '--workdir', str(tmp_path / 'w')]
@@ -216,7 +217,7 @@ def test_resume_with_another_architecture_is_refused_untouched(smoke_run, tmp_pa
 
 def test_cli_config_error_is_one_line(tmp_path):
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
-  env.pop('XLA_FLAGS', None)
+  env['XLA_FLAGS'] = FAST_COMPILE  # one device
   res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config',
                         os.path.join(HERE, '..', 'experiments', 'smoke.py'),
                         '--workdir', str(tmp_path / 'w'), '--config.batch_size=0'],
@@ -290,7 +291,7 @@ def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, t
   runs = [str(workdir)] + [str(_damaged_copy(workdir, tmp_path / d, d))
                            for d in ('truncate', 'metadata', 'empty')]
   env = dict(os.environ)
-  env.pop('XLA_FLAGS', None)
+  env['XLA_FLAGS'] = FAST_COMPILE  # one device
   res = subprocess.run([sys.executable, '-c', LOAD_AND_RESUME] + runs, env=env,
                        capture_output=True, text=True, timeout=600,
                        cwd=os.path.join(HERE, '..'))
