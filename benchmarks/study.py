@@ -158,14 +158,15 @@ def load_data(config, sensor):
 def invert_all(params, depth, steps, seed, corruption='', desc='inverting'):
   """Every scan of ``depth`` (metres) restored by the library
   (evaluation.restore_batches: per-scan draws of ``seed``), concatenated:
-  the corrupted targets and invert's result."""
+  the encoded scans, the corrupted targets and invert's result."""
   from dusty_jax import evaluation
   batches = list(evaluation.restore_batches(params, depth, corruption=corruption,
                                             num_steps=steps, seed=seed, progress=True,
                                             desc=desc))
   keep = ('inv_depth', 'measurability', 'scan', 'points', 'valid', 'loss')
   res = {k: np.concatenate([b[4][k] for b in batches]) for k in keep}
-  return np.concatenate([b[3] for b in batches]), res
+  return (np.concatenate([b[2] for b in batches]),
+          np.concatenate([b[3] for b in batches]), res)
 
 
 def renders_drop(params, inv_depth):
@@ -197,7 +198,7 @@ def disentangle(params, split, a, name):
   sensor = params.sensor
   idx = np.arange(min(a.num_invert, len(split('test'))))
   obs, comp, prob = (split('test', k)[idx] for k in ('', 'complete', 'drop_prob'))
-  _, res = invert_all(params, obs, a.invert_steps, seed=0, desc=f'{name}: inverting')
+  *_, res = invert_all(params, obs, a.invert_steps, seed=0, desc=f'{name}: inverting')
   out = ground_truth.disentanglement(
       sensor, res['inv_depth'], res['measurability'], obs, comp, prob,
       renders_drop=renders_drop(params, res['inv_depth']))
@@ -213,10 +214,9 @@ def restoration(params, split, a, name):
   sensor = params.sensor
   n = min(a.num_restore, len(split('test')))
   obs, comp = split('test')[:n], split('test', 'complete')[:n]
-  clean = np.asarray(codec.encode(obs, sensor))
   out = {}
   for spec in CORRUPTIONS:
-    target, res = invert_all(params, obs, a.invert_steps, seed=7, corruption=spec,
+    clean, target, res = invert_all(params, obs, a.invert_steps, seed=7, corruption=spec,
                              desc=f'{name}: {spec}')
     errs = reconstruction.errors(obs, res, np.asarray(params.angles), sensor)
     vs_clean = {k: float(np.nanmean(v)) for k, v in errs.items() if k != 'count'}

@@ -146,15 +146,6 @@ def restore_batches(params: GeneratorParams, depth, *, corruption: str = '',
     yield start, d, clean, target, res
 
 
-def finite_mean(values):
-  """The mean of the finite values, or None where there is none (a table
-  prints n/a; JSON holds null): a scan without a valid point has no Chamfer
-  distance, and a mean must not turn NaN for it."""
-  v = np.asarray(values, np.float64).ravel()
-  v = v[np.isfinite(v)]
-  return float(v.mean()) if v.size else None
-
-
 def restoration(params: GeneratorParams, depth, *, corruption: str = '',
                 num_steps: int = 1000, init='random', batch: int = 16, seed: int = 0,
                 protocol_name: str = 'reference', names=None, truth=None,
@@ -208,14 +199,14 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
   seeds = {'seed': seed, 'batch': batch, 'keys': RESTORE_KEYS}
   record = {**records.provenance(protocol_name, len(per_scan), points, seeds, subset,
                                   sensor),
-            'mean': {k: finite_mean([r[k] for r in per_scan]) for k in columns},
+            'mean': {k: records.finite_mean([r[k] for r in per_scan]) for k in columns},
             'per_scan': per_scan, 'corrupt': corruption, 'steps': num_steps,
             'init': init if isinstance(init, str) else 'given latents'}
   if truth is not None and per_scan:
     cal = calibration.reliability(np.concatenate(measurability),
                                   1.0 - np.asarray(truth[1][:len(per_scan)]))
     record['ground_truth'] = {
-        'complete_depth': {k: finite_mean(np.concatenate([c[k] for c in complete]))
+        'complete_depth': {k: records.finite_mean(np.concatenate([c[k] for c in complete]))
                            for k in complete[0]},
         'ece': cal['ece'],
         'reliability': {k: np.asarray(v).tolist() for k, v in cal.items() if k != 'ece'}}

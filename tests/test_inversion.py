@@ -441,7 +441,7 @@ def test_a_scan_with_nothing_to_compare_leaves_no_nan_in_the_table(gen):
   cd = [r['cd'] for r in rec['per_scan']]
   assert np.isfinite(cd[0]) and np.isnan(cd[1])
   assert rec['mean']['cd'] == pytest.approx(cd[0])
-  assert evaluation.finite_mean([np.nan, np.inf]) is None
+  assert records.finite_mean([np.nan, np.inf]) is None
   table = records.format_table({'x': {**rec['mean'], 'cd': None},
                                  'y': {'abs_rel': [np.nan, 0.5]}}, reconstruction.COLUMNS)
   assert 'nan' not in table.lower() and table.count('n/a') == 1 + 7

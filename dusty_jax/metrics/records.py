@@ -17,6 +17,20 @@ from dusty_jax.sensor import SensorSpec
 _LEGACY_KEYS = {'1nna': 'nna'}
 
 
+def finite(values) -> np.ndarray:
+  """The finite values of a column, as float64 (None counts as missing)."""
+  v = np.asarray([np.nan] if values is None else values, np.float64).ravel()
+  return v[np.isfinite(v)]
+
+
+def finite_mean(values):
+  """The mean of the finite values, or None where there is none (a table
+  prints n/a; JSON holds null): a scan without a valid point has no Chamfer
+  distance, and a mean must not turn NaN for it."""
+  v = finite(values)
+  return float(v.mean()) if v.size else None
+
+
 def version() -> str:
   """dusty_jax's installed version (an editable install's is its
   pyproject.toml's at install time)."""
@@ -49,10 +63,7 @@ def format_table(rows: dict, columns=ROW_SCALES) -> str:
   for label, m in rows.items():
     cells = []
     for k, _, s in columns:
-      value = m.get(k, m.get(_LEGACY_KEYS.get(k)))
-      v = np.atleast_1d(np.asarray(value if value is not None else np.nan,
-                                   np.float64)).astype(np.float64) * s
-      v = v[np.isfinite(v)]
+      v = finite(m.get(k, m.get(_LEGACY_KEYS.get(k)))) * s
       cells.append('n/a' if not v.size else
                    f'{v.mean():10.3f} +- {v.std():5.3f}' if v.size > 1
                    else f'{v.mean():{width}.3f}')
