@@ -57,6 +57,17 @@ VARIANTS = {
     'dusty2_rate_bias': {'model': 'dusty2', 'rate_weight': 10.0,
                          'mask_bias': KEEP_RATE_LOGIT},
     'dusty2_authors': {'model': 'dusty2'},
+    # A learned measurability offset per ring (laser), started at the data's
+    # keep rate of that ring.
+    'channel_rate_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1, 'mask_dropout': 0.5,
+                               'rate_weight': 10.0, 'mask_bias': KEEP_RATE_LOGIT,
+                               'ring_bias': True},
+    'channel_ringrate_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
+                                   'mask_dropout': 0.5, 'rate_weight': 10.0,
+                                   'rate_by': 'ring', 'mask_bias': KEEP_RATE_LOGIT,
+                                   'ring_bias': True},
+    'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
+                           'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }
 
 
@@ -123,6 +134,26 @@ def evaluate(workdir: str, split, num: int, steps: int) -> dict:
                                      np.asarray(res['measurability']), obs, comp, prob)
   out['measurability'].pop('reliability')
   return out
+
+
+def ring_prior(split, num: int, real_keep) -> dict:
+  """The measurability scores of a constant: each ring's keep rate in the
+  training scans, on the same held-out scans. What a model gains over it is
+  what it learned beyond which laser a pixel belongs to."""
+  from dusty_jax.metrics import calibration, ground_truth
+  from dusty_jax import codec
+  obs, comp, prob = (np.asarray(split('test', k)[:num]) for k in ('', 'complete', 'drop_prob'))
+  sensor = split.sensor
+  m = np.broadcast_to(np.asarray(real_keep)[None, :, None], obs.shape)
+  returned = np.asarray(codec.valid_depth(obs, sensor))
+  surface = np.asarray(codec.valid_depth(comp, sensor))
+  near = surface & (comp < ground_truth.NEAR_M)
+  truth = 1 - prob
+  return {'auc_near': ground_truth.roc_auc(m[near], returned[near]),
+          'auc_surface': ground_truth.roc_auc(m[surface], returned[surface]),
+          'auc': ground_truth.roc_auc(m, returned),
+          'ece': calibration.reliability(m, truth)['ece'],
+          'ece_near': calibration.reliability(m, truth, mask=near)['ece']}
 
 
 def plot(results: dict, real_rate: float, path: str, title: str):
@@ -210,7 +241,7 @@ def main(argv=None):
   for v in names:
     if v not in VARIANTS:
       sys.exit(f'error: unknown variant {v!r}; known: {", ".join(VARIANTS)}')
-  results = {}
+  results, prior = {}, None
   for v in names:
     config = config_of(v, a.steps, a.every, a.data_dir)
     workdir = os.path.join(a.workdir, v)
@@ -221,8 +252,14 @@ def main(argv=None):
     sensor = sensor_lib.from_config(config.sensor)
     d = pipeline.dataset_dir(config, sensor, log=lambda *_: None)
     split = lambda s, kind='': arrays.load_split(d, s, sensor, kind)
+    split.sensor = sensor
     train = np.asarray(split('train')[:512])
     real_rings = ring_drop_rate(codec.encode(train, sensor))
+    if prior is None:
+      prior = ring_prior(split, a.num_invert, 1 - real_rings)
+      print("   reference, each ring's training keep rate as the measurability: "
+            f'AUC near {prior["auc_near"]:.3f} surface {prior["auc_surface"]:.3f}, '
+            f'ECE {prior["ece"]:.3f}', flush=True)
     # Keyed by the training length too: a run continued to more steps is
     # evaluated again.
     cache = os.path.join(workdir, f'screen_eval_{a.num_invert}_{a.invert_steps}_'
@@ -248,7 +285,8 @@ def main(argv=None):
     plot(results, real_rate, os.path.join(a.out, f'{a.name}.png'), a.title)
     common.write_json(os.path.join(a.out, f'{a.name}.json'),
                       dict(steps=a.steps, num_invert=a.num_invert,
-                           invert_steps=a.invert_steps, results=results))
+                           invert_steps=a.invert_steps, ring_prior=prior,
+                           results=results))
 
 
 if __name__ == '__main__':

@@ -83,6 +83,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
   d.mask_lr = 1.0         # update multiplier of the measurability head
   d.rate_weight = 0.0     # G: + weight x (generated keep rate - real keep rate)^2
   d.rate_by = 'image'     # image: one rate per batch | ring: one per row
+  d.ring_bias = False     # G: a learned measurability offset per ring, started
+                          # at the training data's keep rate of that ring
   return d
 
 
@@ -153,9 +155,11 @@ def validate(c) -> None:
   need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')
   need_drop(d.rate_by in ('image', 'ring'), 'rate_by', "must be 'image' or 'ring'")
   model_has_mask = models.get_variant(c.model).has_measurability
-  need_drop(model_has_mask or not (d.mask_channel or d.rate_weight or d.mask_bias
-                                   or d.mask_lr != 1.0),
-            'mask_channel', f'the {c.model} model has no measurability to act on')
+  acting = {f: d[f] != off for f, off in (('mask_channel', 0), ('rate_weight', 0),
+                                          ('mask_bias', 0), ('mask_lr', 1.0),
+                                          ('ring_bias', False))}
+  for f in [f for f, on in acting.items() if on][:1]:
+    need_drop(model_has_mask, f, f'the {c.model} model has no measurability to act on')
 
 
 # Runs written before these options existed trained with what is now the
@@ -182,7 +186,8 @@ def model_settings(config) -> models.ModelSettings:
   c = upgrade(config)
   return models.ModelSettings(model=c.model, latent_dim=int(c.latent_dim),
                               ch_base=int(c.ch_base), ch_max=int(c.ch_max),
-                              eqlr=c.eqlr, tau=float(c.tau))
+                              eqlr=c.eqlr, tau=float(c.tau),
+                              ring_bias=bool(c.drops.ring_bias))
 
 
 def architecture_diff(old, new) -> dict:
@@ -192,8 +197,8 @@ def architecture_diff(old, new) -> dict:
   out = {}
   for f in ARCHITECTURE:
     a, b = old.get(f), new.get(f)
-    if f == 'drops':  # only the mask channel changes what D's arrays are.
-      a, b = old.drops.mask_channel > 0, new.drops.mask_channel > 0
+    if f == 'drops':  # only these change what the networks' arrays are.
+      a, b = ((o.drops.mask_channel > 0, bool(o.drops.ring_bias)) for o in (old, new))
     if f == 'sensor':
       a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
               b.to_dict() if hasattr(b, 'to_dict') else b)

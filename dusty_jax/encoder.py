@@ -135,13 +135,18 @@ def check_has_encoder(params, source: str = 'this generator'):
 def encode(params, scans, impl: str | None = None):
   """Latents on the sphere (B, d) of scans (B, H, W): the encoder's answer."""
   check_has_encoder(params)
+  return _encode(params, scans, impl)
+
+
+@functools.partial(jax.jit, static_argnames=('impl',))
+def _encode(params, scans, impl):
   return project(module(params, impl).apply(params.encoder, scans))
 
 
 def init_variables(key, params, settings: EncoderSettings = EncoderSettings()):
   """Fresh encoder variables for the generator ``params``."""
   enc = Encoder(params.sensor, params.latent_dim, settings, layers.default_impl())
-  return enc.init(key, jnp.zeros((1,) + params.sensor.shape))
+  return jax.jit(enc.init)(key, jnp.zeros((1,) + params.sensor.shape))
 
 
 # ----------------------------------------------------------------------------

@@ -106,6 +106,10 @@ class Generator(nn.Module):
   ch_max: int = 512
   impl: str = 'matmul'
   eqlr: str = 'authors'
+  # One logit offset per row added to the pixel measurability (channel 1):
+  # a LiDAR's lasers each have their own sensitivity, and a conv net with
+  # circular padding sees little of which row it is on.
+  ring_bias: bool = False
 
   out_channels = property(lambda self: sum(self.head_groups))
 
@@ -129,8 +133,11 @@ class Generator(nn.Module):
           x, self.param(f'up{3 - i}_bias', nn.initializers.zeros, (x.shape[-1],)))
     x = EqualConv(self.out_channels, up=True, impl=self.impl, eqlr=self.eqlr,
                   groups=self.head_groups, name='head')(x)
-    return x + self.param('head_bias', nn.initializers.zeros,
-                          (self.out_channels,))
+    x = x + self.param('head_bias', nn.initializers.zeros, (self.out_channels,))
+    if self.ring_bias:
+      rows = self.param('ring_bias', nn.initializers.zeros, (self.sensor.shape[0],))
+      x = x.at[..., 1].add(rows[:, None])
+    return x
 
 
 class Discriminator(nn.Module):
@@ -279,6 +286,9 @@ class ModelSettings:
   ch_max: int = 512
   eqlr: str = 'authors'
   tau: float = 1.0
+  # Beyond the paper (config drops.ring_bias): the pixel measurability logit
+  # gets one learned offset per ring, i.e. per laser of the sensor.
+  ring_bias: bool = False
 
   def __post_init__(self):
     get_variant(self.model)
@@ -296,8 +306,11 @@ class ModelSettings:
 
   def generator(self, sensor: SensorSpec, impl: str | None = None) -> Generator:
     check_shape(sensor)
+    if self.ring_bias and not self.variant.has_measurability:
+      raise ValueError(f'ring_bias: the {self.model} model has no measurability')
     return Generator(sensor, self.variant.head_groups, self.latent_dim, self.ch_base,
-                     self.ch_max, impl or layers.default_impl(), self.eqlr)
+                     self.ch_max, impl or layers.default_impl(), self.eqlr,
+                     self.ring_bias)
 
   def discriminator(self, sensor: SensorSpec, impl: str | None = None) -> 'Discriminator':
     check_shape(sensor)

@@ -19,6 +19,7 @@ def decode_scan(params: GeneratorParams, scan):
   return depth, valid, points
 
 
+@functools.partial(jax.jit, static_argnames=('train', 'impl'))
 def generate(params: GeneratorParams, z, key, train: bool = False,
              impl: str | None = None):
   """What the generator makes of latents ``z`` (B, latent_dim), as a dict.
@@ -30,6 +31,7 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   Keys: ``inv_depth`` (x_tilde, complete), ``measurability`` (probability of
   a return; all ones for the baseline), ``mask`` (sampled), ``scan`` (x),
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
+  Compiled (jit) once per shape; inside other jitted code it inlines.
   """
   raw = params.module(impl).apply(params.variables, z)
   out = params.variant.compose(raw, key, params.tau, train)

@@ -73,6 +73,10 @@ class DropOptions:
   * ``rate_weight`` lambda: G's loss + lambda (mean keep - real keep)^2,
     over the batch (``rate_by='image'``) or per row (``'ring'``, averaged
     over rows), real keep rates from this step's real batch.
+  * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
+    lives in ModelSettings, not here): G's pixel measurability gets a
+    learned logit offset per ring, started at the training data's keep rate
+    of that ring (init_state's ``ring_keep``).
   """
   mask_channel: float = 0.0
   mask_noise: float = 0.0
@@ -152,12 +156,17 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
       drop_const=float(config.drop_const), drops=DropOptions.from_config(config))
 
 
-def init_state(setup: Setup, key) -> TrainState:
+def init_state(setup: Setup, key, ring_keep=None) -> TrainState:
+  """Fresh networks and optimisers. ``ring_keep``: (H,) the training data's
+  keep rate per ring, where the model has a ring bias (drops.ring_bias): the
+  measurability starts at it (without it, the ring offsets start at 0)."""
   kg, kd = jax.random.split(key)
   z = jnp.zeros((1, setup.settings.latent_dim))
   g_params = jax.jit(setup.generator.init)(kg, z)
   if setup.drops.mask_bias:
     g_params = set_mask_bias(g_params, setup.drops.mask_bias)
+  if setup.settings.ring_bias and ring_keep is not None:
+    g_params = set_ring_bias(g_params, ring_keep, setup.drops.mask_bias)
   channels = (2,) if setup.drops.mask_channel > 0 else ()
   d_params = jax.jit(setup.discriminator.init)(
       kd, jnp.zeros((1,) + setup.sensor.shape + channels))
@@ -173,6 +182,30 @@ def set_mask_bias(g_params, bias: float):
   p = flax.core.unfreeze(g_params) if hasattr(g_params, 'unfreeze') else g_params
   head_bias = p['params']['head_bias'].at[1].set(bias)
   return {**p, 'params': {**p['params'], 'head_bias': head_bias}}
+
+
+RING_KEEP_CLIP = 0.01  # keep rates start within [0.01, 0.99]: finite logits.
+
+
+def ring_keep_rate(depth, sensor, num: int = 1024) -> np.ndarray:
+  """(H,) the fraction of returned pixels per ring over the first ``num``
+  scans of ``depth`` (metric, 0 or out of range: dropped)."""
+  d = np.asarray(depth[:num], np.float32)
+  if not len(d):
+    raise ValueError('ring_keep_rate: no scans to count returns in')
+  return np.asarray(codec.valid_depth(d, sensor), np.float64).mean(axis=(0, 2))
+
+
+def set_ring_bias(g_params, ring_keep, mask_bias: float = 0.0):
+  """G's variables with the per-ring measurability offsets set so that,
+  with the global logit ``mask_bias``, ring r starts at logit(ring_keep[r])."""
+  p = flax.core.unfreeze(g_params) if hasattr(g_params, 'unfreeze') else g_params
+  keep = np.clip(np.asarray(ring_keep, np.float64), RING_KEEP_CLIP, 1 - RING_KEEP_CLIP)
+  rows = p['params']['ring_bias']
+  if keep.shape != rows.shape:
+    raise ValueError(f'ring_keep has shape {keep.shape}; the sensor has {rows.shape[0]} rings')
+  logit = np.log(keep) - np.log1p(-keep) - mask_bias
+  return {**p, 'params': {**p['params'], 'ring_bias': jnp.asarray(logit, rows.dtype)}}
 
 
 def scale_mask_updates(updates, factor: float):
@@ -481,7 +514,8 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
-  state = init_state(setup, k_init)
+  state = init_state(setup, k_init, ring_keep_rate(depth, sensor)
+                     if setup.settings.ring_bias else None)
   state, restored = checkpoint.restore_latest(mngr, state, log=log, set_aside=True)
   start = 0 if restored is None else int(restored)
   if restored is not None:

@@ -19,13 +19,14 @@ def _scans_and_keep(b=8, h=16, w=64, seed=0, rate=0.3):
   return jnp.asarray(x), jnp.asarray(keep)
 
 
-def _setup(init=True, **drops):
+def _setup(init=True, ring_keep=None, **drops):
   c = tiny_config()
   c.drops.update(drops)
   configs.validate(c)
   sensor = tiny_sensor(c.sensor.height, c.sensor.width)
   setup = trainer.make_setup(c, sensor)
-  return c, setup, trainer.init_state(setup, jax.random.key(0)) if init else None
+  return c, setup, (trainer.init_state(setup, jax.random.key(0), ring_keep)
+                    if init else None)
 
 
 @pytest.mark.parametrize('style', augment.STYLES)
@@ -118,6 +119,40 @@ def test_mask_bias_sets_the_initial_keep_rate():
   assert float(keep.mean()) > 0.75
 
 
+def test_ring_keep_rate_counts_returns_per_row(tiny):
+  rng = np.random.default_rng(5)
+  depth = rng.uniform(2, 50, (40,) + tiny.shape).astype(np.float32)
+  depth[rng.uniform(size=depth.shape) < np.linspace(0.05, 0.9, tiny.shape[0])[:, None]] = 0
+  depth[0, 3, :5] = tiny.max_depth + 10  # out of range: not a return.
+  want = ((depth[:30] > 0) & (depth[:30] <= tiny.max_depth)).mean(axis=(0, 2))
+  np.testing.assert_allclose(trainer.ring_keep_rate(depth, tiny, num=30), want)
+  with pytest.raises(ValueError, match='no scans'):
+    trainer.ring_keep_rate(depth[:0], tiny)
+
+
+def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
+  rows = 16  # the tiny config's sensor
+  keep = np.linspace(0.3, 0.95, rows)
+  keep[2] = 0.0  # a ring that never returns starts at the clip, finitely.
+  _, setup, state = _setup(ring_keep=keep, ring_bias=True, mask_bias=1.0)
+  p = state.g_params['params']
+  start = np.asarray(p['ring_bias']) + float(p['head_bias'][1])
+  clipped = np.clip(keep, trainer.RING_KEEP_CLIP, 1 - trainer.RING_KEEP_CLIP)
+  np.testing.assert_allclose(start, np.log(clipped / (1 - clipped)), rtol=1e-5, atol=1e-5)
+  # The generated keep rate of each ring follows (the head's own random
+  # output at init moves it by a little).
+  z = jax.random.normal(jax.random.key(2), (64, setup.settings.latent_dim))
+  keys = jax.random.split(jax.random.key(3), 64)
+  mask = jax.jit(lambda q: trainer.fake_scans(setup, q, z, keys)['mask'])(state.g_params)
+  got = np.asarray(mask).mean(axis=(0, 2))
+  assert np.corrcoef(got, clipped)[0, 1] > 0.95
+  assert np.abs(got - clipped).max() < 0.12
+  # Without the option G has no such variables, as the authors' G.
+  assert 'ring_bias' not in _setup()[2].g_params['params']
+  with pytest.raises(ValueError, match='16 rings'):
+    trainer.set_ring_bias(state.g_params, keep[:4])
+
+
 def test_mask_lr_scales_only_the_measurability_head():
   updates = {'params': {'head': {'kernel': jnp.ones((4, 4, 3, 2))},
                         'head_bias': jnp.ones((2,)), 'up1_bias': jnp.ones((5,))}}
@@ -129,20 +164,28 @@ def test_mask_lr_scales_only_the_measurability_head():
 
 
 def test_a_step_with_every_option_runs_and_sees_the_mask():
-  c, setup, state = _setup(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
-                           keep_drops=True, mask_bias=1.4, mask_lr=0.5,
-                           rate_weight=10.0, rate_by='ring')
+  c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_channel=1.0, mask_noise=0.1,
+                           mask_dropout=0.5, keep_drops=True, mask_bias=1.4, mask_lr=0.5,
+                           rate_weight=1e4, rate_by='ring', ring_bias=True)
   # D's first kernel sees 2 channels, each blurred two ways.
   assert state.d_params['params']['down0']['kernel'].shape[2] == 4
   mesh = parallel.data_mesh(jax.devices()[:1])
   step = parallel.data_parallel(trainer.step_fn(setup), mesh)
   state = parallel.replicate(state, mesh)
-  x, _ = _scans_and_keep(b=c.batch_size)
-  head0 = np.asarray(state.g_params['params']['head_bias'])
-  state, m = step(state, parallel.shard_batch(np.asarray(x), mesh), jax.random.key(1))
+  # Real scans: the top half of the rings keeps 90%, the bottom half 10%.
+  x = np.array(_scans_and_keep(b=c.batch_size, rate=0.0)[0])
+  rng = np.random.default_rng(1)
+  x[rng.uniform(size=x.shape) > np.where(np.arange(16) < 8, 0.9, 0.1)[:, None]] = ALPHA
+  before = jax.tree.map(np.asarray, parallel.to_host(state.g_params))['params']
+  state, m = step(state, parallel.shard_batch(x, mesh), jax.random.key(1))
   m = parallel.to_host(m)
   assert all(np.isfinite(float(v)) for v in m.values())
-  assert not np.allclose(np.asarray(state.g_params['params']['head_bias']), head0)
+  after = parallel.to_host(state.g_params)['params']
+  assert not np.allclose(np.asarray(after['head_bias']), before['head_bias'])
+  # The ring rate (weighted to dominate here) moves each ring's offset
+  # towards that ring's real rate, from 0.5 everywhere.
+  moved = np.asarray(after['ring_bias']) - before['ring_bias']
+  assert (moved[:8] > 0).all() and (moved[8:] < 0).all()
 
 
 def test_mask_lr_zero_freezes_the_measurability_head():
@@ -166,18 +209,22 @@ def test_bad_drop_options_name_the_field(field, value):
     configs.validate(c)
 
 
-def test_baseline_refuses_mask_options():
+@pytest.mark.parametrize('field,value', [('rate_weight', 1.0), ('ring_bias', True)])
+def test_baseline_refuses_mask_options(field, value):
   c = tiny_config(model='baseline')
-  c.drops.rate_weight = 1.0
-  with pytest.raises(configs.ConfigError, match='no measurability'):
+  c.drops[field] = value
+  with pytest.raises(configs.ConfigError, match=f'drops.{field}.*no measurability'):
     configs.validate(c)
 
 
-def test_only_the_mask_channel_changes_the_architecture():
+def test_only_the_mask_channel_and_ring_bias_change_the_architecture():
   a, b = tiny_config(), tiny_config()
   b.drops.rate_weight = 5.0
   assert configs.architecture_diff(a, b) == {}
   b.drops.mask_channel = 1.0
+  assert 'drops' in configs.architecture_diff(a, b)
+  b = tiny_config()
+  b.drops.ring_bias = True
   assert 'drops' in configs.architecture_diff(a, b)
   old = tiny_config()
   del old['drops']  # a run from before the options: all off.

@@ -58,10 +58,10 @@ def test_zero_steps_is_the_encoders_forward_pass(trained):
   scans = np.array(sampling.sample(params, jax.random.key(2), 3)['scan'])
   scans[0, :4] = np.nan  # NaN counts as a drop, for the encoder too
   out = inversion.invert(params, scans, init='encoder', num_steps=0)
-  want_z = encoder.project(encoder.module(params).apply(
+  want_z = encoder.project(jax.jit(encoder.module(params).apply)(
       params.encoder, np.where(np.isfinite(scans), scans, ALPHA)))
   np.testing.assert_allclose(out['latent'], want_z, rtol=1e-5, atol=1e-5)
-  raw = params.module().apply(params.variables, want_z)
+  raw = jax.jit(params.module().apply)(params.variables, want_z)
   np.testing.assert_allclose(out['inv_depth'], jnp.tanh(raw[..., 0]), atol=1e-5)
   # Refining moves the latent and lowers the fitted loss from there.
   more = inversion.invert(params, scans, init='encoder', num_steps=20)
@@ -95,24 +95,27 @@ def test_corrupt_one_gives_one_of_the_corruptions(kitti):
 def test_loss_terms_match_their_definition(trained):
   params, _ = dusty_jax.load_checkpoint(trained)
   opts = encoder.TrainOptions(w_latent=2.0, w_rec=0.5)
-  z, inputs, target = encoder.samples(params, jax.random.key(3), 4, opts)
-  total, (lat, rec, real) = encoder.loss_fn(params.encoder, params, z, inputs, target, opts)
+  z, inputs, target = jax.jit(encoder.samples, static_argnums=(2, 3))(
+      params, jax.random.key(3), 4, opts)
+  loss_fn = jax.jit(encoder.loss_fn, static_argnames=('opts',))
+  total, (lat, rec, real) = loss_fn(params.encoder, params, z, inputs, target, opts=opts)
+  apply = jax.jit(params.module().apply)
   e = np.asarray(encoder.encode(params, inputs), np.float64)
   zz = np.asarray(z, np.float64)
   d = params.latent_dim
   # On the sphere, |e - z|^2 / d = 2 (1 - cos(e, z)).
   cos = (e * zz).sum(-1) / d
   np.testing.assert_allclose(float(lat), np.mean(2 * (1 - cos)), rtol=1e-4)
-  x = np.tanh(np.asarray(params.module().apply(params.variables, e.astype(np.float32)))[..., 0])
+  x = np.tanh(np.asarray(apply(params.variables, e.astype(np.float32)))[..., 0])
   np.testing.assert_allclose(float(rec), np.abs(x - np.asarray(target)).mean(), rtol=1e-4)
   np.testing.assert_allclose(float(total), 2.0 * float(lat) + 0.5 * float(rec), rtol=1e-6)
   assert float(real) == 0.0  # no real scans given
   # The real-scan term is the inversion's objective, scan by scan.
-  x = jnp.tanh(params.module().apply(params.variables, encoder.encode(params, inputs))[..., 0])
+  x = jnp.tanh(apply(params.variables, encoder.encode(params, inputs))[..., 0])
   want = np.mean([float(inversion.objective(x[i], target[i], target[i] > ALPHA))
                   for i in range(len(x))])
-  _, (_, _, got) = encoder.loss_fn(params.encoder, params, z, inputs, target, opts,
-                                   real_inputs=inputs, real=target)
+  _, (_, _, got) = loss_fn(params.encoder, params, z, inputs, target, opts=opts,
+                           real_inputs=inputs, real=target)
   np.testing.assert_allclose(float(got), want, rtol=1e-5)
 
 
