@@ -19,7 +19,6 @@ def decode_scan(params: GeneratorParams, scan):
   return depth, valid, points
 
 
-@functools.partial(jax.jit, static_argnames=('train', 'impl'))
 def generate(params: GeneratorParams, z, key, train: bool = False,
              impl: str | None = None):
   """What the generator makes of latents ``z`` (B, latent_dim), as a dict.
@@ -33,6 +32,11 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   Compiled (jit) once per shape; inside other jitted code it inlines.
   """
+  return _generate(params, z, key, train, impl)
+
+
+@functools.partial(jax.jit, static_argnames=('train', 'impl'))
+def _generate(params, z, key, train, impl):
   raw = params.module(impl).apply(params.variables, z)
   out = params.variant.compose(raw, key, params.tau, train)
   out['measurability'] = params.variant.measurability_of(out)
