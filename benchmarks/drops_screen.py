@@ -154,6 +154,7 @@ def ring_prior(split, num: int, real_keep) -> dict:
   near = surface & (comp < ground_truth.NEAR_M)
   truth = 1 - prob
   return {'auc_near': ground_truth.roc_auc(m[near], returned[near]),
+          'auc_near_within_ring': ground_truth.roc_auc_within_rows(m, returned, near),
           'auc_surface': ground_truth.roc_auc(m[surface], returned[surface]),
           'auc': ground_truth.roc_auc(m, returned),
           'ece': calibration.reliability(m, truth)['ece'],
@@ -268,9 +269,8 @@ def main(argv=None):
     # evaluated again.
     cache = os.path.join(workdir, f'screen_eval_{a.num_invert}_{a.invert_steps}_'
                                   f'step{a.steps}.json')
-    if os.path.isfile(cache):
-      ev = json.load(open(cache))
-    else:
+    ev = json.load(open(cache)) if os.path.isfile(cache) else {}
+    if 'auc_near_within_ring' not in ev.get('measurability', {}):  # older caches lack it
       ev = evaluate(workdir, split, a.num_invert, a.invert_steps)
       json.dump(ev, open(cache, 'w'))
     results[v] = {'options': VARIANTS[v], 'eval': ev,
@@ -281,7 +281,8 @@ def main(argv=None):
           f'{min(late) if late else float("nan"):.4f}; real {c["real_drop_rate"][-1]:.3f}), '
           f'ring corr {c["ring_corr"][-1]:+.2f}, D {c["d_real"][-1]:+.2f}/'
           f'{c["d_fake"][-1]:+.2f}; AUC near {m["auc_near"]:.3f} surface '
-          f'{m["auc_surface"]:.3f}, ECE {m["ece"]:.3f}, completion AbsRel '
+          f'{m["auc_surface"]:.3f}, within rings {m["auc_near_within_ring"]:.3f}, '
+          f'ECE {m["ece"]:.3f}, completion AbsRel '
           f'{ev["completion"]["abs_rel"]:.3f}, fit {ev["fit"]["abs_rel"]:.3f}', flush=True)
   if results:
     real_rate = float(np.mean(next(iter(results.values()))['curves']['real_drop_rate']))

@@ -31,6 +31,27 @@ def _scene(seed=0):
   return sensor, complete, p, observed
 
 
+def test_auc_within_rows_counts_only_pairs_of_one_row():
+  rng = np.random.default_rng(3)
+  b, h, w = 3, 5, 7
+  label = rng.uniform(size=(b, h, w)) < np.linspace(0.1, 0.9, h)[:, None]
+  mask = rng.uniform(size=(b, h, w)) < 0.8
+  score = rng.normal(size=(b, h, w)) + label * np.arange(h)[:, None] * 0.5
+  wins = 0.0
+  for r in range(h):  # brute force over the pairs within each row
+    s, l = score[:, r][mask[:, r]], label[:, r][mask[:, r]]
+    for sp in s[l]:
+      wins += (sp > s[~l]).sum() + 0.5 * (sp == s[~l]).sum()
+  pairs = sum(label[:, r][mask[:, r]].sum() * (~label[:, r][mask[:, r]]).sum()
+              for r in range(h))
+  assert ground_truth.roc_auc_within_rows(score, label, mask) == pytest.approx(wins / pairs)
+  # A score that is constant per row knows nothing within a row; the pooled
+  # AUC rewards it for the rows' differing rates.
+  per_row = np.broadcast_to(np.linspace(0.1, 0.9, h)[:, None], (b, h, w))
+  assert ground_truth.roc_auc_within_rows(per_row, label, mask) == 0.5
+  assert ground_truth.roc_auc(per_row[mask], label[mask]) > 0.6
+
+
 def test_perfect_model_scores_perfectly():
   sensor, complete, p, observed = _scene()
   x = np.asarray(codec.encode(complete, sensor))

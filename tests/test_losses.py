@@ -75,22 +75,20 @@ def test_r1_through_discriminator_matches_finite_differences():
   with jax.enable_x64(True):
     d = models.Discriminator(sensor, ch_base=2, ch_max=4)
     x = jax.random.uniform(jax.random.key(0), (2, h, w), jnp.float64, -1, 1)
-    params = d.init(jax.random.key(1), x)
-    params = jax.tree.map(lambda p: p.astype(jnp.float64), params)
     # Non-zero biases so the leaky units are not all cut at the same place.
-    params = jax.tree.map(
-        lambda p: p + 0.1 * jax.random.normal(jax.random.key(2), p.shape, p.dtype),
-        params)
+    params = jax.jit(lambda k, x: jax.tree.map(
+        lambda p: p.astype(jnp.float64) + 0.1 * jax.random.normal(
+            jax.random.key(2), p.shape, jnp.float64), d.init(k, x)))(jax.random.key(1), x)
     d_fn = jax.jit(lambda x: d.apply(params, x))
-    got = float(losses.r1_penalty(d_fn, x))
+    got = float(jax.jit(lambda x: losses.r1_penalty(d_fn, x))(x))
 
     eps = 1e-5
-    basis = jnp.eye(h * w, dtype=jnp.float64).reshape(h * w, h, w)
+    basis = np.eye(h * w).reshape(h * w, h, w)
     fd = []
-    for xb in x:  # one scan at a time: every pixel perturbed both ways.
+    for xb in np.asarray(x):  # one scan at a time: every pixel perturbed both ways.
       plus = d_fn(xb[None] + eps * basis)
       minus = d_fn(xb[None] - eps * basis)
-      fd.append(np.asarray((plus - minus) / (2 * eps)))
+      fd.append((np.asarray(plus) - np.asarray(minus)) / (2 * eps))
     fd = np.stack(fd)
   assert got > 0
   # Only a pixel whose +-eps crosses a leaky-ReLU kink can disagree; the sum

@@ -49,6 +49,24 @@ def roc_auc(score, label) -> float:
   return float((ranks[label].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
+def roc_auc_within_rows(score, label, mask) -> float:
+  """ROC AUC of ``score`` against ``label`` within each image row (ring) over
+  ``mask`` (B, H, W), averaged over the rows that hold both classes,
+  weighted by their pairs (positives x negatives): pooled within-row
+  pairs only. A score that is constant per row scores 0.5; it measures
+  what a measurability knows beyond which laser a pixel belongs to."""
+  score, label, mask = (np.asarray(a) for a in (score, label, mask))
+  total = weight = 0.0
+  for r in range(score.shape[1]):
+    m = mask[:, r].astype(bool)
+    lab = label[:, r][m].astype(bool)
+    pairs = float(lab.sum()) * float((~lab).sum())
+    if pairs:
+      total += pairs * roc_auc(score[:, r][m], lab)
+      weight += pairs
+  return total / weight if weight else float('nan')
+
+
 def pooled_errors(pred, target, mask) -> dict:
   """MAE (m) and AbsRel over ``mask``, pooled over all scans' pixels (not
   per scan, unlike Table III's metrics/depth.py)."""
@@ -123,6 +141,7 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
           'auc': roc_auc(m, valid_obs),
           'auc_surface': roc_auc(m[surface], valid_obs[surface]),
           'auc_near': roc_auc(m[near_surface], valid_obs[near_surface]),
+          'auc_near_within_ring': roc_auc_within_rows(m, valid_obs, near_surface),
           'ece_near': calibration.reliability(m, truth, bins=bins,
                                               mask=near_surface)['ece'],
           'reliability': {k: np.asarray(v).tolist() for k, v in cal.items()
