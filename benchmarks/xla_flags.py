@@ -35,7 +35,8 @@ SETS = {
     'ynn_fusion_dot': '--xla_cpu_experimental_ynn_fusion_type=dot',
     'concurrency_scheduler': '--xla_cpu_enable_concurrency_optimized_scheduler=true',
     'vector_512': '--xla_cpu_prefer_vector_width=512',
-    'no_multi_output_fusion': '--xla_cpu_use_multi_output_fusion=false',
+    'onednn_concurrency': ('--xla_cpu_use_onednn=true '
+                           '--xla_cpu_enable_concurrency_optimized_scheduler=true'),
 }
 
 
