@@ -164,12 +164,14 @@ def ring_prior(split, num: int, real_keep) -> dict:
 def plot(results: dict, real_rate: float, path: str, title: str):
   plt = common.pyplot()
   fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-  for name, r in results.items():
+  # One distinct colour per variant (the default cycle repeats after 10).
+  colours = plt.get_cmap('tab20')(np.arange(len(results)) % 20)
+  for (name, r), colour in zip(results.items(), colours):
     c = r['curves']
-    axes[0].plot(c['step'], c['drop_rate'], label=name, lw=1)
-    axes[1].plot(c['ring_step'], c['ring_corr'], marker='o', ms=3, label=name)
-    line, = axes[2].plot(c['step'], c['d_real'], lw=1, label=name)
-    axes[2].plot(c['step'], c['d_fake'], lw=1, ls='--', color=line.get_color())
+    axes[0].plot(c['step'], c['drop_rate'], label=name, lw=1, color=colour)
+    axes[1].plot(c['ring_step'], c['ring_corr'], marker='o', ms=3, label=name, color=colour)
+    axes[2].plot(c['step'], c['d_real'], lw=1, label=name, color=colour)
+    axes[2].plot(c['step'], c['d_fake'], lw=1, ls='--', color=colour)
   axes[0].axhline(real_rate, color='k', ls=':', label='real scans')
   axes[0].set_ylabel('drop rate of generated scans (G, training batch)')
   axes[1].set_ylabel("corr. of EMA's per-ring drop rate with the data's")
