@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import common
-from dusty_jax import augment, configs, losses, models, parallel, trainer
+from dusty_jax import augment, configs, losses, parallel, trainer
 from dusty_jax.sensor import get_sensor
 
 SCALES = {'paper': dict(latent_dim=512, ch_base=64, ch_max=512, batch_size=32),
@@ -47,7 +47,7 @@ def phases(c, sensor, repeats):
   z = jax.random.normal(jax.random.key(1), (b, c.latent_dim))
   keys = jax.random.split(jax.random.key(2), b)
   aug_keys = (keys, jax.random.split(jax.random.key(3), b))
-  g, d = setup.generator, setup.discriminator
+  d = setup.discriminator
   gp, dp = state.g_params, state.d_params
 
   def fakes(p):
