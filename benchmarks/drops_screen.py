@@ -140,25 +140,16 @@ def evaluate(workdir: str, split, num: int, steps: int) -> dict:
   return out
 
 
-def ring_prior(split, num: int, real_keep) -> dict:
+def ring_prior(split, sensor, num: int, real_keep) -> dict:
   """The measurability scores of a constant: each ring's keep rate in the
   training scans, on the same held-out scans. What a model gains over it is
   what it learned beyond which laser a pixel belongs to."""
-  from dusty_jax.metrics import calibration, ground_truth
-  from dusty_jax import codec
+  from dusty_jax.metrics import ground_truth
   obs, comp, prob = (np.asarray(split('test', k)[:num]) for k in ('', 'complete', 'drop_prob'))
-  sensor = split.sensor
   m = np.broadcast_to(np.asarray(real_keep)[None, :, None], obs.shape)
-  returned = np.asarray(codec.valid_depth(obs, sensor))
-  surface = np.asarray(codec.valid_depth(comp, sensor))
-  near = surface & (comp < ground_truth.NEAR_M)
-  truth = 1 - prob
-  return {'auc_near': ground_truth.roc_auc(m[near], returned[near]),
-          'auc_near_within_ring': ground_truth.roc_auc_within_rows(m, returned, near),
-          'auc_surface': ground_truth.roc_auc(m[surface], returned[surface]),
-          'auc': ground_truth.roc_auc(m, returned),
-          'ece': calibration.reliability(m, truth)['ece'],
-          'ece_near': calibration.reliability(m, truth, mask=near)['ece']}
+  out = ground_truth.measurability_scores(sensor, m, obs, comp, prob)
+  out.pop('reliability')
+  return out
 
 
 def plot(results: dict, real_rate: float, path: str, title: str):
@@ -259,11 +250,10 @@ def main(argv=None):
     sensor = sensor_lib.from_config(config.sensor)
     d = pipeline.dataset_dir(config, sensor, log=lambda *_: None)
     split = lambda s, kind='': arrays.load_split(d, s, sensor, kind)
-    split.sensor = sensor
     train = np.asarray(split('train')[:512])
     real_rings = ring_drop_rate(codec.encode(train, sensor))
     if prior is None:
-      prior = ring_prior(split, a.num_invert, 1 - real_rings)
+      prior = ring_prior(split, sensor, a.num_invert, 1 - real_rings)
       print("   reference, each ring's training keep rate as the measurability: "
             f'AUC near {prior["auc_near"]:.3f} surface {prior["auc_surface"]:.3f}, '
             f'ECE {prior["ece"]:.3f}', flush=True)

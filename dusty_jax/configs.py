@@ -155,11 +155,10 @@ def validate(c) -> None:
   need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')
   need_drop(d.rate_by in ('image', 'ring'), 'rate_by', "must be 'image' or 'ring'")
   model_has_mask = models.get_variant(c.model).has_measurability
-  acting = {f: d[f] != off for f, off in (('mask_channel', 0), ('rate_weight', 0),
-                                          ('mask_bias', 0), ('mask_lr', 1.0),
-                                          ('ring_bias', False))}
-  for f in [f for f, on in acting.items() if on][:1]:
-    need_drop(model_has_mask, f, f'the {c.model} model has no measurability to act on')
+  acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('mask_bias', 0),
+                             ('mask_lr', 1.0), ('ring_bias', False)) if d[f] != off]
+  if acting:  # the first option set names the error
+    need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act on')
 
 
 # Runs written before these options existed trained with what is now the

@@ -120,31 +120,43 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
   complete = np.asarray(complete, np.float64)
   valid_obs = np.asarray(codec.valid_depth(observed, sensor))
   surface = np.asarray(codec.valid_depth(complete, sensor))
-  near_surface = surface & (complete < near)
   filled, coverage = completion(sensor, inv_depth, complete, surface & ~valid_obs,
                                 renders_drop)
   pred = np.asarray(codec.complete_depth(inv_depth, sensor), np.float64)
+  return {
+      'completion': filled,
+      'fit': pooled_errors(pred, observed, valid_obs),
+      'coverage': coverage,
+      'measurability': measurability_scores(sensor, measurability, observed, complete,
+                                            drop_prob, bins, near),
+  }
+
+
+def measurability_scores(sensor, measurability, observed, complete, drop_prob,
+                         bins: int = 10, near: float = NEAR_M) -> dict:
+  """A measurability (B, H, W) against the returns of ``observed`` and the
+  true keep probability 1 - ``drop_prob``: ECE, Brier and ROC AUC over all
+  pixels, surface pixels (``complete`` > 0) and surfaces nearer than
+  ``near`` metres (there also the AUC within rings), and the reliability
+  curve. Arguments as :func:`disentanglement`'s."""
+  complete = np.asarray(complete, np.float64)
+  valid_obs = np.asarray(codec.valid_depth(np.asarray(observed, np.float64), sensor))
+  surface = np.asarray(codec.valid_depth(complete, sensor))
+  near_surface = surface & (complete < near)
   m = np.clip(np.asarray(measurability, np.float64), 0.0, 1.0)
   truth = 1.0 - np.asarray(drop_prob, np.float64)
   returned = valid_obs.astype(np.float64)
   cal = calibration.reliability(m, truth, bins=bins)
   cal_surface = calibration.reliability(m, truth, bins=bins, mask=surface)
   return {
-      'completion': filled,
-      'fit': pooled_errors(pred, observed, valid_obs),
-      'coverage': coverage,
-      'measurability': {
-          'ece': cal['ece'],
-          'ece_surface': cal_surface['ece'],
-          'brier': float(np.mean(np.square(m - returned))),
-          'brier_surface': float(np.mean(np.square(m - returned)[surface])),
-          'auc': roc_auc(m, valid_obs),
-          'auc_surface': roc_auc(m[surface], valid_obs[surface]),
-          'auc_near': roc_auc(m[near_surface], valid_obs[near_surface]),
-          'auc_near_within_ring': roc_auc_within_rows(m, valid_obs, near_surface),
-          'ece_near': calibration.reliability(m, truth, bins=bins,
-                                              mask=near_surface)['ece'],
-          'reliability': {k: np.asarray(v).tolist() for k, v in cal.items()
-                          if k != 'ece'},
-      },
+      'ece': cal['ece'],
+      'ece_surface': cal_surface['ece'],
+      'brier': float(np.mean(np.square(m - returned))),
+      'brier_surface': float(np.mean(np.square(m - returned)[surface])),
+      'auc': roc_auc(m, valid_obs),
+      'auc_surface': roc_auc(m[surface], valid_obs[surface]),
+      'auc_near': roc_auc(m[near_surface], valid_obs[near_surface]),
+      'auc_near_within_ring': roc_auc_within_rows(m, valid_obs, near_surface),
+      'ece_near': calibration.reliability(m, truth, bins=bins, mask=near_surface)['ece'],
+      'reliability': {k: np.asarray(v).tolist() for k, v in cal.items() if k != 'ece'},
   }
