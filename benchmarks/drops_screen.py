@@ -70,6 +70,14 @@ VARIANTS = {
                                       'mask_dropout': 0.5, 'rate_weight': 100.0,
                                       'rate_by': 'ring', 'mask_bias': KEEP_RATE_LOGIT,
                                       'ring_bias': True},
+    # The rate per (ring, depth of the returned neighbours) cell: drops may
+    # depend on the range within a ring.
+    'channel_ringdepth100_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
+                                       'mask_dropout': 0.5, 'rate_weight': 100.0,
+                                       'rate_by': 'ring_depth',
+                                       'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
+    'ringdepth100_ring_bias': {'rate_weight': 100.0, 'rate_by': 'ring_depth',
+                               'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }

@@ -82,7 +82,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
   d.mask_bias = 0.0       # initial measurability logit (logit of the keep rate)
   d.mask_lr = 1.0         # update multiplier of the measurability head
   d.rate_weight = 0.0     # G: + weight x (generated keep rate - real keep rate)^2
-  d.rate_by = 'image'     # image: one rate per batch | ring: one per row
+  d.rate_by = 'image'     # image: one rate per batch | ring: one per row |
+                          # ring_depth: per row and neighbours' depth bin
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -153,7 +154,8 @@ def validate(c) -> None:
     need_drop(d[f] >= 0, f, 'must be >= 0')
   need_drop(d.mask_dropout <= 1, 'mask_dropout', 'a probability: must be <= 1')
   need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')
-  need_drop(d.rate_by in ('image', 'ring'), 'rate_by', "must be 'image' or 'ring'")
+  need_drop(d.rate_by in ('image', 'ring', 'ring_depth'), 'rate_by',
+            "must be 'image', 'ring' or 'ring_depth'")
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('mask_bias', 0),
                              ('mask_lr', 1.0), ('ring_bias', False)) if d[f] != off]

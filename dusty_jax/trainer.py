@@ -72,7 +72,10 @@ class DropOptions:
   * ``mask_lr``: multiplies the Adam updates of the measurability head.
   * ``rate_weight`` lambda: G's loss + lambda (mean keep - real keep)^2,
     over the batch (``rate_by='image'``) or per row (``'ring'``, averaged
-    over rows), real keep rates from this step's real batch.
+    over rows), real keep rates from this step's real batch. ``'ring_depth'``:
+    per (ring, depth bin) cell, the depth judged from the returned
+    neighbours alike in real and generated scans (neighbour_depth_bin), so
+    the drops may depend on the range within a ring, as a sensor's do.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -281,6 +284,69 @@ def rate_penalty(drops: DropOptions, keep, real_keep):
   return jnp.mean(jnp.square(gap))
 
 
+# Metric depth edges (m) of the ``rate_by='ring_depth'`` cells.
+RATE_DEPTH_EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
+NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
+
+
+def neighbour_depth_bin(scan, keep, sensor: SensorSpec, edges=RATE_DEPTH_EDGES):
+  """(B, H, W) int: each pixel's depth bin, judged from its neighbours.
+
+  The mean normalised inverse depth of the returned pixels (``keep``) in a
+  (3, 5) window around each pixel, the pixel itself left out (columns wrap
+  around, rows do not), binned by the metric ``edges``: bin 0 when no
+  neighbour returned, then 1 (nearer than edges[0]) to len(edges) + 1
+  (beyond edges[-1]). Leaving the pixel out makes the bin of a drop and of a
+  return alike, so real scans, whose dropped depth is unknown, and
+  generated ones are binned the same way.
+  """
+  keep = keep.astype(jnp.float32)
+  x = jnp.where(keep > 0, scan, 0.0)
+  (dh, dw), h = NEIGHBOURS, scan.shape[1]
+  pad = lambda a: jnp.pad(a, ((0, 0), (dh, dh), (0, 0)))
+  xs, ks = pad(x), pad(keep)
+  total, count = jnp.zeros_like(x), jnp.zeros_like(x)
+  for i in range(2 * dh + 1):
+    for j in range(-dw, dw + 1):
+      if (i, j) == (dh, 0):
+        continue
+      total += jnp.roll(xs[:, i:i + h], j, axis=2)
+      count += jnp.roll(ks[:, i:i + h], j, axis=2)
+  mean = total / jnp.maximum(count, 1.0)
+  # Depth beyond an edge <=> inverse depth at or below its code.
+  codes = codec.encode(jnp.asarray(edges, jnp.float32), sensor)
+  far = jnp.sum(mean[..., None] <= codes, axis=-1)
+  return jnp.where(count > 0, 1 + far, 0)
+
+
+def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int):
+  """The squared gap between the generated and the real keep rate of each
+  cell of ``cells`` / ``real_cells`` (ints in [0, num_cells): one per
+  pixel), weighted by the generated pixels in the cell (cells empty on
+  either side count 0), so each generated pixel is pulled towards its
+  cell's real rate as the other rate terms pull it towards the ring's."""
+  flat = lambda a: a.reshape(-1)
+  count = lambda c, w: jax.ops.segment_sum(flat(w), flat(c), num_cells)
+  ones = jnp.ones_like(keep)
+  n_fake, n_real = count(cells, ones), count(real_cells, ones)
+  fake_rate = count(cells, keep) / jnp.maximum(n_fake, 1.0)
+  real_rate = lax.stop_gradient(count(real_cells, real_keep) / jnp.maximum(n_real, 1.0))
+  weight = jnp.where(n_real > 0, n_fake, 0.0)
+  return jnp.sum(weight * jnp.square(fake_rate - real_rate)) / jnp.maximum(weight.sum(), 1.0)
+
+
+def ring_depth_rate_penalty(sensor: SensorSpec, fake, real):
+  """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
+  cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the bins are
+  not differentiated (neighbour_depth_bin)."""
+  nbins = len(RATE_DEPTH_EDGES) + 2
+  def cells(scan, keep):
+    bins = neighbour_depth_bin(lax.stop_gradient(scan), lax.stop_gradient(keep) > 0.5, sensor)
+    return jnp.arange(scan.shape[1])[None, :, None] * nbins + bins
+  return cell_rate_penalty(fake[1], real[1], cells(*fake), cells(*real),
+                           fake[0].shape[1] * nbins)
+
+
 def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
            axis_name=None):
   """One discriminator update: (d_params, d_opt, metrics).
@@ -314,25 +380,28 @@ def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
 
 
 def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
-           axis_name=None, real_keep=None):
+           axis_name=None, real=None):
   """One generator update through ``d_params``: (g_params, g_opt, loss_g).
 
   ``fake`` are the generated scans and ``fake_vjp`` the VJP of the
   generator's forward pass that made them (``jax.vjp``), so the forward pass
   of the D step serves here too (the authors reuse it the same way).
   ``key``: the augmentation keys, one per example. With point-drop options
-  ``fake`` is the pair (scans, keep-masks) and ``real_keep`` the real
-  batch's keep-mask (for ``rate_weight``); the returned loss is then the
+  ``fake`` is the pair (scans, keep-masks) and ``real`` the real batch's
+  (for ``rate_weight``); the returned loss is then the
   adversarial loss alone, without the rate penalty.
   """
   d_local = _local(d_params, axis_name)
 
   def objective(scan):
     adv = losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, scan)))
-    if setup.drops.rate_weight > 0:
-      return adv + setup.drops.rate_weight * rate_penalty(
-          setup.drops, scan[1], real_keep), adv
-    return adv, adv
+    if setup.drops.rate_weight == 0:
+      return adv, adv
+    if setup.drops.rate_by == 'ring_depth':
+      penalty = ring_depth_rate_penalty(setup.sensor, scan, real)
+    else:
+      penalty = rate_penalty(setup.drops, scan[1], real[1])
+    return adv + setup.drops.rate_weight * penalty, adv
 
   (_, loss_g), dscan = jax.value_and_grad(objective, has_aux=True)(fake)
   (grads,) = fake_vjp(dscan)
@@ -397,7 +466,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
       setup, state.d_params, state.d_opt, real, fake, (kar, kaf),
       (state.step % setup.r1_every) == 0, axis_name)
   g_params, g_opt, loss_g = g_step(setup, state.g_params, state.g_opt, d_params,
-                                   fake, fake_vjp, kag, axis_name, real_keep)
+                                   fake, fake_vjp, kag, axis_name, real)
   fake = fake[0] if isinstance(fake, tuple) else fake
   ema = ema_update(state.ema_params, g_params, ema_decay(setup, state.step))
   metrics = dict(d_metrics, loss_g=loss_g,

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dusty_jax import augment, configs, parallel, trainer
+from dusty_jax import augment, codec, configs, parallel, trainer
 from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import tiny_sensor
 from train_helpers import tiny_config
@@ -105,6 +105,87 @@ def test_rate_penalty_against_numpy(rate_by):
       setup.drops, keep, r))(real)).max()) == 0.0
 
 
+def _neighbour_bins_loop(x, keep, sensor, edges):
+  """neighbour_depth_bin by explicit loops over pixels and their window."""
+  b, h, w = x.shape
+  codes = np.asarray([float(codec.encode(np.float32(e), sensor)) for e in edges])
+  out = np.zeros((b, h, w), np.int64)
+  for n in range(b):
+    for r in range(h):
+      for c in range(w):
+        vals = [x[n, rr, cc % w] for rr in range(r - 1, r + 2) for cc in range(c - 2, c + 3)
+                if 0 <= rr < h and (rr, cc) != (r, c) and keep[n, rr, cc % w]]
+        out[n, r, c] = 0 if not vals else 1 + int(np.sum(np.mean(vals) <= codes))
+  return out
+
+
+def test_neighbour_depth_bin_against_loops():
+  sensor = tiny_sensor(6, 12)
+  rng = np.random.default_rng(5)
+  # Depth grows along the ring (2 to 80 m), so every bin is reached.
+  depth = (np.geomspace(2.0, 80.0, 12) * rng.uniform(0.9, 1.1, (3, 6, 12))).astype(np.float32)
+  keep = rng.uniform(size=depth.shape) > 0.4
+  keep[0, :3] = False  # a pixel whose neighbours all dropped: bin 0
+  x = np.where(keep, np.asarray(codec.encode(depth, sensor)), ALPHA).astype(np.float32)
+  edges = (5.0, 20.0, 40.0)
+  got = np.asarray(trainer.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(keep), sensor, edges))
+  want = _neighbour_bins_loop(x, keep, sensor, edges)
+  np.testing.assert_array_equal(got, want)
+  assert (want == 0).any() and len(np.unique(want)) == len(edges) + 2
+  # The pixel itself never counts: flipping it leaves its own bin unchanged.
+  flipped = keep.copy()
+  flipped[1, 3, 5] = ~flipped[1, 3, 5]
+  again = trainer.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(flipped), sensor, edges)
+  assert int(again[1, 3, 5]) == int(got[1, 3, 5])
+
+
+def test_cell_rate_penalty_against_numpy():
+  rng = np.random.default_rng(6)
+  keep = rng.uniform(size=(4, 5, 7)).astype(np.float32)
+  real = (rng.uniform(size=keep.shape) > 0.3).astype(np.float32)
+  cells, real_cells = rng.integers(0, 6, keep.shape), rng.integers(0, 5, keep.shape)
+  num = 7  # cell 5 has no reals, cell 6 no pixel at all: both weigh 0
+  total, weight = 0.0, 0.0
+  for c in range(num):
+    f, r = cells == c, real_cells == c
+    if f.any() and r.any():
+      total += f.sum() * (keep[f].mean() - real[r].mean()) ** 2
+      weight += f.sum()
+  got = trainer.cell_rate_penalty(jnp.asarray(keep), jnp.asarray(real),
+                                  jnp.asarray(cells), jnp.asarray(real_cells), num)
+  assert float(got) == pytest.approx(total / weight, rel=1e-5)
+  # Each generated pixel is pushed towards its own cell's real rate.
+  g = np.asarray(jax.grad(trainer.cell_rate_penalty)(
+      jnp.asarray(keep), jnp.asarray(real), jnp.asarray(cells), jnp.asarray(real_cells), num))
+  for c in range(5):
+    f = cells == c
+    assert np.all(np.sign(g[f]) == np.sign(keep[f].mean() - real[real_cells == c].mean()))
+  np.testing.assert_array_equal(g[cells == 5], 0.0)
+
+
+def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
+  """Real scans keep every near pixel and half the far ones, and each ring
+  holds both (columns 0-15 near, 16-31 far). The generated scans keep 75%
+  everywhere: the right rate for each ring, so the per-ring term is 0, but
+  the ring_depth term pulls near pixels up and far ones down."""
+  sensor = tiny_sensor(4, 32)
+  near, far = (float(codec.encode(np.float32(d), sensor)) for d in (3.0, 50.0))
+  r, c = np.meshgrid(np.arange(4), np.arange(32), indexing='ij')
+  x = np.broadcast_to(np.where(c < 16, near, far), (2, 4, 32)).astype(np.float32)
+  real_keep = np.broadcast_to((c < 16) | ((r + c) % 2 == 0), x.shape).astype(np.float32)
+  fake_keep = jnp.asarray(np.broadcast_to((r + c) % 4 != 0, x.shape), jnp.float32)
+  real = (jnp.asarray(np.where(real_keep > 0, x, ALPHA)), jnp.asarray(real_keep))
+  fake_scan = jnp.where(fake_keep > 0, jnp.asarray(x), ALPHA)
+  penalty = lambda k: trainer.ring_depth_rate_penalty(sensor, (fake_scan, k), real)
+  assert float(penalty(fake_keep)) > 0
+  g = np.asarray(jax.grad(penalty)(fake_keep))
+  # Away from the seams (the window reaches 2 columns): near pixels are
+  # pushed to keep (the penalty falls as they rise), far ones to drop.
+  assert (g[..., 2:14] < 0).all() and (g[..., 18:30] > 0).all()
+  ring = trainer.rate_penalty(trainer.DropOptions(rate_by='ring'), fake_keep, real[1])
+  assert float(ring) == 0.0
+
+
 def test_mask_bias_sets_the_initial_keep_rate():
   _, setup, state = _setup(mask_bias=2.0)
   np.testing.assert_array_equal(state.g_params['params']['head_bias'], [0.0, 2.0])
@@ -163,10 +244,11 @@ def test_mask_lr_scales_only_the_measurability_head():
   np.testing.assert_allclose(out['params']['up1_bias'], 1.0)
 
 
-def test_a_step_with_every_option_runs_and_sees_the_mask():
+@pytest.mark.parametrize('rate_by', ['ring', 'ring_depth'])
+def test_a_step_with_every_option_runs_and_sees_the_mask(rate_by):
   c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_channel=1.0, mask_noise=0.1,
                            mask_dropout=0.5, keep_drops=True, mask_bias=1.4, mask_lr=0.5,
-                           rate_weight=1e4, rate_by='ring', ring_bias=True)
+                           rate_weight=1e4, rate_by=rate_by, ring_bias=True)
   # D's first kernel sees 2 channels, each blurred two ways.
   assert state.d_params['params']['down0']['kernel'].shape[2] == 4
   mesh = parallel.data_mesh(jax.devices()[:1])
