@@ -78,6 +78,12 @@ VARIANTS = {
                                        'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
     'ringdepth100_ring_bias': {'rate_weight': 100.0, 'rate_by': 'ring_depth',
                                'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
+    'channel_ringdepth1000_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
+                                        'mask_dropout': 0.5, 'rate_weight': 1000.0,
+                                        'rate_by': 'ring_depth',
+                                        'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
+    'ringdepth1000_ring_bias': {'rate_weight': 1000.0, 'rate_by': 'ring_depth',
+                                'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }

@@ -41,14 +41,18 @@ import numpy as np
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug', 'dusty1_drops', 'dusty2_drops')
+MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug', 'dusty1_drops', 'dusty2_drops',
+          'dusty1_rangedrops', 'dusty2_rangedrops')
 TRADE_RUN = 'dusty1'  # the run whose inversion time vs quality (trade) is measured
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_noaug': 'DUSty-I, no DiffAugment',
-          'dusty1_drops': 'DUSty-I, drops variant', 'dusty2_drops': 'DUSty-II, drops variant'}
+          'dusty1_drops': 'DUSty-I, drops variant', 'dusty2_drops': 'DUSty-II, drops variant',
+          'dusty1_rangedrops': 'DUSty-I, drops by ring and range',
+          'dusty2_rangedrops': 'DUSty-II, drops by ring and range'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
 EXPORT_NAMES = {'dusty1_drops': 'sim-dusty1', 'dusty1': 'sim-dusty1-authors',
                 'baseline': 'sim-baseline'}
+BEYOND_THE_PAPER = ('_drops', '_rangedrops')  # model suffixes with drops options
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
 TRADE_ITERS = (50, 100, 200, 500, 1000)
@@ -424,10 +428,12 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
               ' trained by an earlier run of this study with the same settings); with'
               f' `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
               ' sections are that run\'s, the rest computed here.', '']
-  if any(m.endswith('_drops') for m in results):
-    from dusty_jax import configs
-    lines += ['The drops variants (beyond the paper, README "Point-drops that survive'
-              f' training") add `drops` options {configs.DROPS_VARIANT}.', '']
+  from dusty_jax import configs
+  for suffix, options in (('_drops', configs.DROPS_VARIANT),
+                          ('_rangedrops', configs.RANGE_DROPS_VARIANT)):
+    if any(m.endswith(suffix) for m in results):
+      lines += [f'The *{suffix} models (beyond the paper, README "Point-drops that survive'
+                f' training") add `drops` options {options}.', '']
   lines += [
       f'## Synthesis (Table II layout; N = {first["synthesis"]["num"]} clouds of'
       f' {first["synthesis"]["points"]} points, {first["synthesis"]["seeds"]} seeds)',
@@ -541,7 +547,8 @@ def main(argv=None):
   picture_reliability(results, params_by_model, os.path.join(a.out, 'study_reliability.png'))
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   picture_restoration(a.workdir, params_by_model, os.path.join(a.out, 'study_restoration.png'))
-  kitti_file = picture_kitti(params_by_model.get('dusty1_drops', params),
+  variant = next((m for m in ('dusty1_rangedrops', 'dusty1_drops') if m in params_by_model), key)
+  kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
   text = report(results, trade_result, train_seconds, a, machine, kitti_file)
   with open(os.path.join(a.out, 'study.md'), 'w') as f:
@@ -558,7 +565,7 @@ def main(argv=None):
         training = {'config': f'experiments/study_{m}.py', 'scale': a.scale,
                     'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
                     'augment': config.augment, 'drops': config.drops.to_dict(),
-                    'beyond_the_paper': bool(m.endswith('_drops'))}
+                    'beyond_the_paper': bool(m.endswith(BEYOND_THE_PAPER))}
         path = pretrained.export(params_by_model[m], name,
                                  source=f'benchmarks/study.py --scale {a.scale} ({m})',
                                  training=training)

@@ -220,13 +220,19 @@ STUDY_SCALES = ('cpu', 'paper')
 # at the data's keep rate (logit(0.8)).
 DROPS_VARIANT = dict(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
                      rate_weight=10.0, mask_bias=1.386)
+# Drops by ring and range (README "Point-drops that survive training"): G
+# matches the real keep rate of each (ring, neighbours' depth) cell, and its
+# measurability has one learned offset per ring, started at that ring's rate.
+RANGE_DROPS_VARIANT = dict(rate_weight=100.0, rate_by='ring_depth', mask_bias=1.386,
+                           ring_bias=True)
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
   """``model``: baseline, dusty1, dusty2, dusty1_noaug (DUSty-I without
   DiffAugment: at the CPU scale the discriminator cannot see point-drops
   through the augmentation, see benchmarks/results/study.md), or
-  dusty1_drops / dusty2_drops (with DROPS_VARIANT)."""
+  dusty1_drops / dusty2_drops (with DROPS_VARIANT), or dusty1_rangedrops /
+  dusty2_rangedrops (with RANGE_DROPS_VARIANT)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()
@@ -235,6 +241,8 @@ def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
     c.augment = ''
   if model.endswith('_drops'):
     c.drops.update(DROPS_VARIANT)
+  if model.endswith('_rangedrops'):
+    c.drops.update(RANGE_DROPS_VARIANT)
   c.sensor.preset = 'kitti'
   c.data.dir = ''
   c.data.num_synthetic = 2000

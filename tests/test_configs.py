@@ -12,7 +12,7 @@ from train_helpers import tiny_config
 
 def test_every_experiment_config_is_complete():
   configs.validate(tiny_config())
-  for name in ('baseline', 'dusty1', 'dusty2_drops'):
+  for name in ('baseline', 'dusty1', 'dusty2_drops', 'dusty1_rangedrops'):
     configs.validate(configs.study(name))
 
 
