@@ -76,6 +76,10 @@ VARIANTS = {
                                        'mask_dropout': 0.5, 'rate_weight': 100.0,
                                        'rate_by': 'ring_depth',
                                        'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
+    'channel_ringdepth_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
+                                    'mask_dropout': 0.5, 'rate_weight': 10.0,
+                                    'rate_by': 'ring_depth',
+                                    'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
     'ringdepth100_ring_bias': {'rate_weight': 100.0, 'rate_by': 'ring_depth',
                                'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
     'channel_ringdepth1000_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
@@ -162,6 +166,35 @@ def ring_prior(split, sensor, num: int, real_keep) -> dict:
   obs, comp, prob = (np.asarray(split('test', k)[:num]) for k in ('', 'complete', 'drop_prob'))
   m = np.broadcast_to(np.asarray(real_keep)[None, :, None], obs.shape)
   out = ground_truth.measurability_scores(sensor, m, obs, comp, prob)
+  out.pop('reliability')
+  return out
+
+
+def ring_depth_prior(split, sensor, num: int) -> dict:
+  """The same for a table: the training scans' keep rate per (ring, depth
+  bin) cell, the bins as the ``ring_depth`` rate judges them (from the
+  returned neighbours, trainer.neighbour_depth_bin). What that rate term
+  can teach, if G learned it exactly."""
+  import jax
+  from dusty_jax import codec, trainer
+  from dusty_jax.metrics import ground_truth
+  nbins = len(trainer.RATE_DEPTH_EDGES) + 2
+  bin_of = jax.jit(lambda x: trainer.neighbour_depth_bin(x, x > codec.ALPHA, sensor))
+  def cells(depth):
+    return np.concatenate([np.asarray(bin_of(codec.encode(d, sensor)))
+                           for d in np.array_split(depth, max(1, len(depth) // 64))])
+  train = np.asarray(split('train'))
+  keep = np.asarray(codec.valid_depth(train, sensor), np.float64)
+  rings = np.broadcast_to(np.arange(train.shape[1])[None, :, None], train.shape)
+  index = rings * nbins + cells(train)
+  kept = np.bincount(index.ravel(), keep.ravel(), minlength=train.shape[1] * nbins)
+  seen = np.bincount(index.ravel(), minlength=train.shape[1] * nbins)
+  ring_rate = keep.mean(axis=(0, 2))
+  # Cells the training scans barely fill lean on their ring's rate.
+  rate = (kept + 5 * np.repeat(ring_rate, nbins)) / (seen + 5)
+  obs, comp, prob = (np.asarray(split('test', k)[:num]) for k in ('', 'complete', 'drop_prob'))
+  test_index = np.arange(obs.shape[1])[None, :, None] * nbins + cells(obs)
+  out = ground_truth.measurability_scores(sensor, rate[test_index], obs, comp, prob)
   out.pop('reliability')
   return out
 
@@ -253,7 +286,7 @@ def main(argv=None):
   for v in names:
     if v not in VARIANTS:
       sys.exit(f'error: unknown variant {v!r}; known: {", ".join(VARIANTS)}')
-  results, prior = {}, None
+  results, prior, depth_prior = {}, None, None
   for v in names:
     config = config_of(v, a.steps, a.every, a.data_dir)
     workdir = os.path.join(a.workdir, v)
@@ -271,6 +304,11 @@ def main(argv=None):
       print("   reference, each ring's training keep rate as the measurability: "
             f'AUC near {prior["auc_near"]:.3f} surface {prior["auc_surface"]:.3f}, '
             f'ECE {prior["ece"]:.3f}', flush=True)
+      depth_prior = ring_depth_prior(split, sensor, a.num_invert)
+      print("   reference, each (ring, neighbours' depth) cell's training keep rate: "
+            f'AUC near {depth_prior["auc_near"]:.3f} surface {depth_prior["auc_surface"]:.3f}, '
+            f'within rings {depth_prior["auc_near_within_ring"]:.3f}, '
+            f'ECE {depth_prior["ece"]:.3f}', flush=True)
     # Keyed by the training length too: a run continued to more steps is
     # evaluated again.
     cache = os.path.join(workdir, f'screen_eval_{a.num_invert}_{a.invert_steps}_'
@@ -297,6 +335,7 @@ def main(argv=None):
     common.write_json(os.path.join(a.out, f'{a.name}.json'),
                       dict(steps=a.steps, num_invert=a.num_invert,
                            invert_steps=a.invert_steps, ring_prior=prior,
+                           ring_depth_prior=depth_prior,
                            results=results))
 
 

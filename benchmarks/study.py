@@ -391,7 +391,9 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
                    f'{100 * d["coverage"]:.1f}', f3(d['fit']['mae_m']),
                    f3(d['fit']['abs_rel']), f3(m['ece']), f3(m['ece_surface']),
                    f3(m['brier']), f3(m['brier_surface']), f3(m['auc']),
-                   f3(m['auc_surface']), f3(m['auc_near']), f3(m['ece_near'])])
+                   f3(m['auc_surface']), f3(m['auc_near']),
+                   f3(m['auc_near_within_ring']) if 'auc_near_within_ring' in m else 'n/a',
+                   f3(m['ece_near'])])
   r_rows = []
   for model, r in results.items():
     for spec, v in r['restoration'].items():
@@ -453,7 +455,7 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
       '',
       md_table(['model', 'compl. MAE m', 'compl. AbsRel', 'coverage %', 'fit MAE m',
                 'fit AbsRel', 'ECE', 'ECE surf.', 'Brier', 'Brier surf.', 'AUC',
-                'AUC surf.', 'AUC < 40 m', 'ECE < 40 m'], d_rows),
+                'AUC surf.', 'AUC < 40 m', 'AUC < 40 m within rings', 'ECE < 40 m'], d_rows),
       '',
       '![reliability](study_reliability.png)',
       '',
@@ -566,8 +568,15 @@ def main(argv=None):
                     'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
                     'augment': config.augment, 'drops': config.drops.to_dict(),
                     'beyond_the_paper': bool(m.endswith(BEYOND_THE_PAPER))}
-        path = pretrained.export(params_by_model[m], name,
-                                 source=f'benchmarks/study.py --scale {a.scale} ({m})',
+        source = f'benchmarks/study.py --scale {a.scale} ({m})'
+        options = os.path.join(a.workdir, m, 'encoder', 'options.json')
+        if params_by_model[m].encoder is not None and os.path.isfile(options):
+          # The run's encoder (train_encoder), with the options it trained with.
+          opts = json.load(open(options))
+          training['encoder'] = ('python -m dusty_jax.tools.train_encoder --workdir RUN ' +
+                                 ' '.join(f'--{k}={v}' for k, v in opts.items()))
+          source += ' + encoder'
+        path = pretrained.export(params_by_model[m], name, source=source,
                                  training=training)
         print(f'exported {path} ({os.path.getsize(path) / 1e6:.2f} MB)')
 

@@ -35,6 +35,8 @@ SETS = {
     'ynn_fusion_dot': '--xla_cpu_experimental_ynn_fusion_type=dot',
     'concurrency_scheduler': '--xla_cpu_enable_concurrency_optimized_scheduler=true',
     'vector_512': '--xla_cpu_prefer_vector_width=512',
+    'concurrency_vector_512': ('--xla_cpu_enable_concurrency_optimized_scheduler=true '
+                               '--xla_cpu_prefer_vector_width=512'),
     'onednn_concurrency': ('--xla_cpu_use_onednn=true '
                            '--xla_cpu_enable_concurrency_optimized_scheduler=true'),
 }
@@ -100,11 +102,16 @@ def main(argv=None):
       summary[s] = {'flags': SETS[s], 'error': errors[s]}
       continue
     med = {k: float(np.median(v)) for k, v in times[s].items()}
+    # Each round's ratio to that round's default: the machine's drift
+    # between rounds cancels.
+    paired = {k: float(np.median(np.divide(v, times['default'][k][:len(v)])))
+              for k, v in times[s].items() if k in base and len(times['default'][k]) >= len(v)}
     summary[s] = {'flags': SETS[s], 'median_s': med, 'runs_s': times[s],
-                  'ratio_to_default': {k: v / base[k] for k, v in med.items() if k in base}}
+                  'ratio_to_default': {k: v / base[k] for k, v in med.items() if k in base},
+                  'median_round_ratio': paired}
     print(f'  {s:24s} ' + '  '.join(
-        f'{k} {v:.3f} s (x{v / base[k]:.2f})' if k in base else f'{k} {v:.3f} s'
-        for k, v in med.items()))
+        f'{k} {v:.3f} s (x{v / base[k]:.2f}; per round x{paired.get(k, float("nan")):.2f})'
+        if k in base else f'{k} {v:.3f} s' for k, v in med.items()))
   common.write_json(a.out, dict(rounds=a.rounds, repeats=a.repeats, sets=summary))
 
 

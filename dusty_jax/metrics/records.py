@@ -58,7 +58,8 @@ def format_table(rows: dict, columns=ROW_SCALES) -> str:
   III): mean +- std where there are several values. A metric a row lacks,
   or holds only as None or NaN, prints n/a, never nan."""
   width = 18 if columns is ROW_SCALES else 12
-  head = f'{"":24s}' + ''.join(f'{n:>{width}s}' for _, n, _ in columns)
+  lw = max([24] + [len(label) + 1 for label in rows])  # labels never run into the numbers
+  head = f'{"":{lw}s}' + ''.join(f'{n:>{width}s}' for _, n, _ in columns)
   lines = [head, '-' * len(head)]
   for label, m in rows.items():
     cells = []
@@ -67,5 +68,5 @@ def format_table(rows: dict, columns=ROW_SCALES) -> str:
       cells.append('n/a' if not v.size else
                    f'{v.mean():10.3f} +- {v.std():5.3f}' if v.size > 1
                    else f'{v.mean():{width}.3f}')
-    lines.append(f'{label:24s}' + ''.join(f'{c:>{width}s}' for c in cells))
+    lines.append(f'{label:{lw}s}' + ''.join(f'{c:>{width}s}' for c in cells))
   return '\n'.join(lines)
