@@ -33,6 +33,10 @@ import common
 HERE = os.path.dirname(os.path.abspath(__file__))
 KEEP_RATE_LOGIT = 1.386  # logit(0.8): the simulated scans keep ~80% of pixels.
 
+# Pieces of the variants below.
+CHANNEL = {'mask_channel': 1.0, 'mask_noise': 0.1, 'mask_dropout': 0.5}
+RING_DEPTH = {'rate_by': 'ring_depth', 'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True}
+
 VARIANTS = {
     'authors': {},
     'rate': {'rate_weight': 10.0},
@@ -72,22 +76,10 @@ VARIANTS = {
                                       'ring_bias': True},
     # The rate per (ring, depth of the returned neighbours) cell: drops may
     # depend on the range within a ring.
-    'channel_ringdepth100_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
-                                       'mask_dropout': 0.5, 'rate_weight': 100.0,
-                                       'rate_by': 'ring_depth',
-                                       'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
-    'channel_ringdepth_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
-                                    'mask_dropout': 0.5, 'rate_weight': 10.0,
-                                    'rate_by': 'ring_depth',
-                                    'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
-    'ringdepth100_ring_bias': {'rate_weight': 100.0, 'rate_by': 'ring_depth',
-                               'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
-    'channel_ringdepth1000_ring_bias': {'mask_channel': 1.0, 'mask_noise': 0.1,
-                                        'mask_dropout': 0.5, 'rate_weight': 1000.0,
-                                        'rate_by': 'ring_depth',
-                                        'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
-    'ringdepth1000_ring_bias': {'rate_weight': 1000.0, 'rate_by': 'ring_depth',
-                                'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
+    'channel_ringdepth100_ring_bias': {**CHANNEL, **RING_DEPTH, 'rate_weight': 100.0},
+    'channel_ringdepth_ring_bias': {**CHANNEL, **RING_DEPTH, 'rate_weight': 10.0},
+    'ringdepth100_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0},
+    'ringdepth1000_ring_bias': {**RING_DEPTH, 'rate_weight': 1000.0},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }
