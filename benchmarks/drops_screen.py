@@ -162,31 +162,31 @@ def ring_prior(split, sensor, num: int, real_keep) -> dict:
   return out
 
 
+PRIOR_PSEUDO_COUNT = 5  # cells the training scans barely fill lean on their ring's rate
+
+
 def ring_depth_prior(split, sensor, num: int) -> dict:
   """The same for a table: the training scans' keep rate per (ring, depth
-  bin) cell, the bins as the ``ring_depth`` rate judges them (from the
-  returned neighbours, trainer.neighbour_depth_bin). What that rate term
-  can teach, if G learned it exactly."""
+  bin) cell, the cells as the ``ring_depth`` rate term forms them
+  (trainer.ring_depth_cells). The term's targets are these rates, taken
+  from each training batch instead of the whole split."""
   import jax
   from dusty_jax import codec, trainer
   from dusty_jax.metrics import ground_truth
-  nbins = len(trainer.RATE_DEPTH_EDGES) + 2
-  bin_of = jax.jit(lambda x: trainer.neighbour_depth_bin(x, x > codec.ALPHA, sensor))
+  cells_of = jax.jit(lambda x: trainer.ring_depth_cells(x, x > codec.ALPHA, sensor))
   def cells(depth):
-    return np.concatenate([np.asarray(bin_of(codec.encode(d, sensor)))
+    return np.concatenate([np.asarray(cells_of(codec.encode(d, sensor)))
                            for d in np.array_split(depth, max(1, len(depth) // 64))])
   train = np.asarray(split('train'))
   keep = np.asarray(codec.valid_depth(train, sensor), np.float64)
-  rings = np.broadcast_to(np.arange(train.shape[1])[None, :, None], train.shape)
-  index = rings * nbins + cells(train)
-  kept = np.bincount(index.ravel(), keep.ravel(), minlength=train.shape[1] * nbins)
-  seen = np.bincount(index.ravel(), minlength=train.shape[1] * nbins)
-  ring_rate = keep.mean(axis=(0, 2))
-  # Cells the training scans barely fill lean on their ring's rate.
-  rate = (kept + 5 * np.repeat(ring_rate, nbins)) / (seen + 5)
+  num_cells = train.shape[1] * trainer.RATE_DEPTH_BINS
+  index = cells(train)
+  kept = np.bincount(index.ravel(), keep.ravel(), minlength=num_cells)
+  seen = np.bincount(index.ravel(), minlength=num_cells)
+  ring_rate = np.repeat(keep.mean(axis=(0, 2)), trainer.RATE_DEPTH_BINS)
+  rate = (kept + PRIOR_PSEUDO_COUNT * ring_rate) / (seen + PRIOR_PSEUDO_COUNT)
   obs, comp, prob = (np.asarray(split('test', k)[:num]) for k in ('', 'complete', 'drop_prob'))
-  test_index = np.arange(obs.shape[1])[None, :, None] * nbins + cells(obs)
-  out = ground_truth.measurability_scores(sensor, rate[test_index], obs, comp, prob)
+  out = ground_truth.measurability_scores(sensor, rate[cells(obs)], obs, comp, prob)
   out.pop('reliability')
   return out
 

@@ -381,7 +381,8 @@ def md_table(header, rows):
   return '\n'.join(lines)
 
 
-def report(results, trade_result, train_seconds, a, machine, kitti_file):
+def report(results, trade_result, train_seconds, a, machine, kitti_file,
+           kitti_model='dusty1'):
   f3 = lambda v: f'{v:.3f}'
   d_rows = []
   for model, r in results.items():
@@ -487,7 +488,7 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file):
       ' rows: the scan x, x_tilde, the measurability (baseline: 1).',
   ]
   if kitti_file:
-    lines += ['', '## A real KITTI scan restored by the simulated-data DUSty-I', '',
+    lines += ['', f'## A real KITTI scan restored by the simulated-data {LABELS[kitti_model]}', '',
               '![kitti](study_kitti.png)', '',
               'KITTI odometry sequence 00, frame 0. The model was trained on simulated'
               ' scenes only, never on KITTI. Rows: the scan as measured, 90% of points'
@@ -552,7 +553,7 @@ def main(argv=None):
   variant = next((m for m in ('dusty1_rangedrops', 'dusty1_drops') if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
-  text = report(results, trade_result, train_seconds, a, machine, kitti_file)
+  text = report(results, trade_result, train_seconds, a, machine, kitti_file, variant)
   with open(os.path.join(a.out, 'study.md'), 'w') as f:
     f.write(text)
   common.write_json(os.path.join(a.out, 'study.json'),

@@ -335,16 +335,26 @@ def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int):
   return jnp.sum(weight * jnp.square(fake_rate - real_rate)) / jnp.maximum(weight.sum(), 1.0)
 
 
+RATE_DEPTH_BINS = len(RATE_DEPTH_EDGES) + 2  # bin 0 (no returned neighbour) and the ranges
+
+
+def ring_depth_cells(scan, keep, sensor: SensorSpec):
+  """(B, H, W) int: each pixel's (ring, depth bin) cell, ring * RATE_DEPTH_BINS
+  + neighbour_depth_bin; cells run over [0, H * RATE_DEPTH_BINS)."""
+  bins = neighbour_depth_bin(scan, keep, sensor)
+  return jnp.arange(scan.shape[1])[None, :, None] * RATE_DEPTH_BINS + bins
+
+
 def ring_depth_rate_penalty(sensor: SensorSpec, fake, real):
   """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
-  cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the bins are
-  not differentiated (neighbour_depth_bin)."""
-  nbins = len(RATE_DEPTH_EDGES) + 2
-  def cells(scan, keep):
-    bins = neighbour_depth_bin(lax.stop_gradient(scan), lax.stop_gradient(keep) > 0.5, sensor)
-    return jnp.arange(scan.shape[1])[None, :, None] * nbins + bins
+  cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are
+  not differentiated. The real rates are this device's batch's, as for the
+  other rate terms: cells the batch barely fills give noisy targets, and
+  more devices mean fewer scans per cell."""
+  cells = lambda scan, keep: ring_depth_cells(lax.stop_gradient(scan),
+                                              lax.stop_gradient(keep) > 0.5, sensor)
   return cell_rate_penalty(fake[1], real[1], cells(*fake), cells(*real),
-                           fake[0].shape[1] * nbins)
+                           fake[0].shape[1] * RATE_DEPTH_BINS)
 
 
 def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
@@ -388,7 +398,7 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
   of the D step serves here too (the authors reuse it the same way).
   ``key``: the augmentation keys, one per example. With point-drop options
   ``fake`` is the pair (scans, keep-masks) and ``real`` the real batch's
-  (for ``rate_weight``); the returned loss is then the
+  (scans, keep-masks) pair (for ``rate_weight``); the returned loss is then the
   adversarial loss alone, without the rate penalty.
   """
   d_local = _local(d_params, axis_name)

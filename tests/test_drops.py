@@ -161,6 +161,14 @@ def test_cell_rate_penalty_against_numpy():
     f = cells == c
     assert np.all(np.sign(g[f]) == np.sign(keep[f].mean() - real[real_cells == c].mean()))
   np.testing.assert_array_equal(g[cells == 5], 0.0)
+  # Its size: 2 (cell gap) / (the weighted pixels), the same for every pixel
+  # of a cell; the real masks get none.
+  c0 = cells == 0
+  gap0 = keep[c0].mean() - real[real_cells == 0].mean()
+  np.testing.assert_allclose(g[c0], 2 * gap0 / weight, rtol=1e-4)
+  g_real = jax.grad(trainer.cell_rate_penalty, argnums=1)(
+      jnp.asarray(keep), jnp.asarray(real), jnp.asarray(cells), jnp.asarray(real_cells), num)
+  assert float(jnp.abs(g_real).max()) == 0.0
 
 
 def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
@@ -184,6 +192,16 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
   assert (g[..., 2:14] < 0).all() and (g[..., 18:30] > 0).all()
   ring = trainer.rate_penalty(trainer.DropOptions(rate_by='ring'), fake_keep, real[1])
   assert float(ring) == 0.0
+  # Drops at another drop constant (config drop_const) change nothing.
+  at = lambda x, k, c: jnp.where(k > 0, x, c)
+  moved = trainer.ring_depth_rate_penalty(
+      sensor, (at(fake_scan, fake_keep, -2.0), fake_keep), (at(real[0], real[1], -2.0), real[1]))
+  assert float(moved) == float(penalty(fake_keep))
+  # A scene at one depth falls in the bin that depth names.
+  for d, want in ((3.0, 1), (12.0, 3), (50.0, 7), (100.0, 8)):
+    x1 = jnp.full((1, 4, 32), float(codec.encode(np.float32(d), sensor)))
+    bins = trainer.neighbour_depth_bin(x1, jnp.ones_like(x1), sensor)
+    assert (np.asarray(bins) == want).all(), (d, np.unique(bins))
 
 
 def test_mask_bias_sets_the_initial_keep_rate():
