@@ -52,7 +52,6 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
 EXPORT_NAMES = {'dusty1_drops': 'sim-dusty1', 'dusty1': 'sim-dusty1-authors',
                 'baseline': 'sim-baseline'}
-BEYOND_THE_PAPER = ('_drops', '_rangedrops')  # model suffixes with drops options
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
 TRADE_ITERS = (50, 100, 200, 500, 1000)
@@ -432,8 +431,7 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file,
               f' `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
               ' sections are that run\'s, the rest computed here.', '']
   from dusty_jax import configs
-  for suffix, options in (('_drops', configs.DROPS_VARIANT),
-                          ('_rangedrops', configs.RANGE_DROPS_VARIANT)):
+  for suffix, options in configs.STUDY_DROPS.items():
     if any(m.endswith(suffix) for m in results):
       lines += [f'The *{suffix} models (beyond the paper, README "Point-drops that survive'
                 f' training") add `drops` options {options}.', '']
@@ -561,14 +559,14 @@ def main(argv=None):
                      'results': results, 'trade': trade_result}, indent=1)
   print(text)
   if a.export:
-    from dusty_jax import pretrained
+    from dusty_jax import configs, pretrained
     for m, name in EXPORT_NAMES.items():
       if m in params_by_model and m not in seeded:
         config = dusty_jax.load_checkpoint(os.path.join(a.workdir, m))[1]
         training = {'config': f'experiments/study_{m}.py', 'scale': a.scale,
                     'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
                     'augment': config.augment, 'drops': config.drops.to_dict(),
-                    'beyond_the_paper': bool(m.endswith(BEYOND_THE_PAPER))}
+                    'beyond_the_paper': m.endswith(tuple(configs.STUDY_DROPS))}
         source = f'benchmarks/study.py --scale {a.scale} ({m})'
         options = os.path.join(a.workdir, m, 'encoder', 'options.json')
         if params_by_model[m].encoder is not None and os.path.isfile(options):

@@ -225,6 +225,8 @@ DROPS_VARIANT = dict(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
 # measurability has one learned offset per ring, started at that ring's rate.
 RANGE_DROPS_VARIANT = dict(rate_weight=100.0, rate_by='ring_depth', mask_bias=1.386,
                            ring_bias=True)
+# Study model suffix -> the drops options it adds (beyond the paper).
+STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT}
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
@@ -239,10 +241,9 @@ def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
   c.model = model.split('_')[0]
   if model.endswith('_noaug'):
     c.augment = ''
-  if model.endswith('_drops'):
-    c.drops.update(DROPS_VARIANT)
-  if model.endswith('_rangedrops'):
-    c.drops.update(RANGE_DROPS_VARIANT)
+  for suffix, options in STUDY_DROPS.items():
+    if model.endswith(suffix):
+      c.drops.update(options)
   c.sensor.preset = 'kitti'
   c.data.dir = ''
   c.data.num_synthetic = 2000
