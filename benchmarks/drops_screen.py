@@ -80,6 +80,9 @@ VARIANTS = {
     'channel_ringdepth_ring_bias': {**CHANNEL, **RING_DEPTH, 'rate_weight': 10.0},
     'ringdepth100_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0},
     'ringdepth1000_ring_bias': {**RING_DEPTH, 'rate_weight': 1000.0},
+    # Cell targets shrunk towards their ring's rate (as if 10 more pixels
+    # kept at it): sparse cells no longer pull towards a noisy 0 or 1.
+    'ringdepth100_shrink_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0, 'rate_shrink': 10.0},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }

@@ -84,6 +84,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
   d.rate_weight = 0.0     # G: + weight x (generated keep rate - real keep rate)^2
   d.rate_by = 'image'     # image: one rate per batch | ring: one per row |
                           # ring_depth: per row and neighbours' depth bin
+  d.rate_shrink = 0.0     # ring_depth: cell targets shrunk to the ring's rate,
+                          # as if k more pixels kept at it
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -150,12 +152,14 @@ def validate(c) -> None:
   def need_drop(ok, field, why):
     if not ok:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
-  for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight'):
+  for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight', 'rate_shrink'):
     need_drop(d[f] >= 0, f, 'must be >= 0')
   need_drop(d.mask_dropout <= 1, 'mask_dropout', 'a probability: must be <= 1')
   need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')
   need_drop(d.rate_by in ('image', 'ring', 'ring_depth'), 'rate_by',
             "must be 'image', 'ring' or 'ring_depth'")
+  need_drop(d.rate_shrink == 0 or d.rate_by == 'ring_depth', 'rate_shrink',
+            f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('mask_bias', 0),
                              ('mask_lr', 1.0), ('ring_bias', False)) if d[f] != off]

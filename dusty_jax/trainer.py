@@ -76,6 +76,9 @@ class DropOptions:
     per (ring, depth bin) cell, the depth judged from the returned
     neighbours alike in real and generated scans (neighbour_depth_bin), so
     the drops may depend on the range within a ring, as a sensor's do.
+    ``rate_shrink`` k: each cell's real rate is shrunk towards its ring's,
+    (kept + k * ring rate) / (n + k) (cell_rate_penalty). The tallies are
+    the global batch's: N devices compute what one does.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -89,6 +92,7 @@ class DropOptions:
   mask_lr: float = 1.0
   rate_weight: float = 0.0
   rate_by: str = 'image'
+  rate_shrink: float = 0.0
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -96,7 +100,8 @@ class DropOptions:
     return cls(mask_channel=float(d.mask_channel), mask_noise=float(d.mask_noise),
                mask_dropout=float(d.mask_dropout), keep_drops=bool(d.keep_drops),
                mask_bias=float(d.mask_bias), mask_lr=float(d.mask_lr),
-               rate_weight=float(d.rate_weight), rate_by=str(d.rate_by))
+               rate_weight=float(d.rate_weight), rate_by=str(d.rate_by),
+               rate_shrink=float(d.rate_shrink))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -276,11 +281,19 @@ def d_view(setup: Setup, keys, scan, keep):
   return jnp.stack([x, channel], axis=-1)
 
 
-def rate_penalty(drops: DropOptions, keep, real_keep):
+def _psum(x, axis_name):
+  return x if axis_name is None else lax.psum(x, axis_name)
+
+
+def rate_penalty(drops: DropOptions, keep, real_keep, axis_name=None):
   """(generated keep rate - real keep rate)^2: of the whole batch, or per
-  row (averaged over rows) with ``rate_by='ring'``."""
+  row (averaged over rows) with ``rate_by='ring'``. With ``axis_name`` the
+  rates are those of the global batch (the tallies are summed over the
+  devices), so N devices compute what one device does with the same batch."""
   axes = (0, 2) if drops.rate_by == 'ring' else (0, 1, 2)
-  gap = keep.mean(axis=axes) - lax.stop_gradient(real_keep).mean(axis=axes)
+  n = _psum(np.prod([keep.shape[a] for a in axes]), axis_name)
+  rate = lambda k: _psum(k.sum(axis=axes), axis_name) / n
+  gap = rate(keep) - lax.stop_gradient(rate(real_keep))
   return jnp.mean(jnp.square(gap))
 
 
@@ -319,19 +332,36 @@ def neighbour_depth_bin(scan, keep, sensor: SensorSpec, edges=RATE_DEPTH_EDGES):
   return jnp.where(count > 0, 1 + far, 0)
 
 
-def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int):
+def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int,
+                      shrink: float = 0.0, groups: int = 1, axis_name=None):
   """The squared gap between the generated and the real keep rate of each
   cell of ``cells`` / ``real_cells`` (ints in [0, num_cells): one per
-  pixel), weighted by the generated pixels in the cell (cells empty on
-  either side count 0), so each generated pixel is pulled towards its
-  cell's real rate as the other rate terms pull it towards the ring's."""
+  pixel), weighted by the generated pixels in the cell, so each generated
+  pixel is pulled towards its cell's real rate as the other rate terms pull
+  it towards the ring's.
+
+  ``shrink`` k = 0: cells empty on either side count 0. k > 0: each cell's
+  target is shrunk towards its group's real rate, (kept + k * group rate) /
+  (n + k), so a cell the real batch barely fills (or misses) is pulled to
+  its group's rate rather than to a noisy 0 or 1. The cells form ``groups``
+  consecutive equal blocks (for ring_depth: the rings). With ``axis_name``
+  the tallies are the global batch's (summed over the devices).
+  """
   flat = lambda a: a.reshape(-1)
-  count = lambda c, w: jax.ops.segment_sum(flat(w), flat(c), num_cells)
+  count = lambda c, w: _psum(jax.ops.segment_sum(flat(w), flat(c), num_cells), axis_name)
   ones = jnp.ones_like(keep)
   n_fake, n_real = count(cells, ones), count(real_cells, ones)
   fake_rate = count(cells, keep) / jnp.maximum(n_fake, 1.0)
-  real_rate = lax.stop_gradient(count(real_cells, real_keep) / jnp.maximum(n_real, 1.0))
-  weight = jnp.where(n_real > 0, n_fake, 0.0)
+  kept_real = lax.stop_gradient(count(real_cells, real_keep))
+  if shrink > 0:
+    by_group = lambda a: a.reshape(groups, -1).sum(axis=1, keepdims=True)
+    group_rate = by_group(kept_real) / jnp.maximum(by_group(n_real), 1.0)
+    real_rate = flat((kept_real.reshape(groups, -1) + shrink * group_rate) /
+                     (n_real.reshape(groups, -1) + shrink))
+    weight = n_fake
+  else:
+    real_rate = kept_real / jnp.maximum(n_real, 1.0)
+    weight = jnp.where(n_real > 0, n_fake, 0.0)
   return jnp.sum(weight * jnp.square(fake_rate - real_rate)) / jnp.maximum(weight.sum(), 1.0)
 
 
@@ -345,16 +375,19 @@ def ring_depth_cells(scan, keep, sensor: SensorSpec):
   return jnp.arange(scan.shape[1])[None, :, None] * RATE_DEPTH_BINS + bins
 
 
-def ring_depth_rate_penalty(sensor: SensorSpec, fake, real):
+def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, shrink: float = 0.0,
+                            axis_name=None):
   """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
-  cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are
-  not differentiated. The real rates are this device's batch's, as for the
-  other rate terms: cells the batch barely fills give noisy targets, and
-  more devices mean fewer scans per cell."""
+  cells, each cell's target shrunk towards its ring's rate by ``shrink``.
+  ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are not
+  differentiated. The real rates are the training batch's (with
+  ``axis_name``, summed over the devices): cells the batch barely fills give
+  noisy targets, which ``shrink`` calms."""
   cells = lambda scan, keep: ring_depth_cells(lax.stop_gradient(scan),
                                               lax.stop_gradient(keep) > 0.5, sensor)
+  h = fake[0].shape[1]
   return cell_rate_penalty(fake[1], real[1], cells(*fake), cells(*real),
-                           fake[0].shape[1] * RATE_DEPTH_BINS)
+                           h * RATE_DEPTH_BINS, shrink, h, axis_name)
 
 
 def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
@@ -408,9 +441,10 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
     if setup.drops.rate_weight == 0:
       return adv, adv
     if setup.drops.rate_by == 'ring_depth':
-      penalty = ring_depth_rate_penalty(setup.sensor, scan, real)
+      penalty = ring_depth_rate_penalty(setup.sensor, scan, real, setup.drops.rate_shrink,
+                                        axis_name)
     else:
-      penalty = rate_penalty(setup.drops, scan[1], real[1])
+      penalty = rate_penalty(setup.drops, scan[1], real[1], axis_name)
     return adv + setup.drops.rate_weight * penalty, adv
 
   (_, loss_g), dscan = jax.value_and_grad(objective, has_aux=True)(fake)

@@ -171,6 +171,36 @@ def test_cell_rate_penalty_against_numpy():
   assert float(jnp.abs(g_real).max()) == 0.0
 
 
+def test_cell_rate_penalty_shrinks_sparse_cells_to_their_group_rate():
+  rng = np.random.default_rng(7)
+  keep = rng.uniform(size=(3, 4, 10)).astype(np.float32)
+  real = (rng.uniform(size=keep.shape) > 0.4).astype(np.float32)
+  groups, per = 4, 3  # 4 groups (rings) of 3 cells; cell = row * 3 + bin
+  row = np.arange(4)[None, :, None]
+  cells = row * per + rng.integers(0, per, keep.shape)
+  real_cells = row * per + rng.choice([0, 1], keep.shape, p=[0.95, 0.05])
+  real_cells[:, 0] = 0 + rng.integers(0, 2, real_cells[:, 0].shape)  # ring 0: no bin 2
+  k, num = 10.0, groups * per
+  total, weight = 0.0, 0.0
+  for c in range(num):
+    f, r, g = cells == c, real_cells == c, (real_cells // per) == c // per
+    target = (real[r].sum() + k * real[g].mean()) / (r.sum() + k)
+    total += f.sum() * (keep[f].mean() - target) ** 2 if f.any() else 0.0
+    weight += f.sum()
+  args = [jnp.asarray(a) for a in (keep, real, cells, real_cells)]
+  got = trainer.cell_rate_penalty(*args, num, shrink=k, groups=groups)
+  assert float(got) == pytest.approx(total / weight, rel=1e-5)
+  # A cell the reals miss (ring 0, bin 2) now counts, pulled to ring 0's rate.
+  g = np.asarray(jax.grad(lambda m: trainer.cell_rate_penalty(
+      m, *args[1:], num, shrink=k, groups=groups))(args[0]))
+  empty = cells == 2
+  assert empty.any() and np.all(
+      np.sign(g[empty]) == np.sign(keep[empty].mean() - real[:, 0].mean()))
+  # Without shrinking it would weigh 0.
+  g0 = jax.grad(lambda m: trainer.cell_rate_penalty(m, *args[1:], num))(args[0])
+  np.testing.assert_array_equal(np.asarray(g0)[empty], 0.0)
+
+
 def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
   """Real scans keep every near pixel and half the far ones, and each ring
   holds both (columns 0-15 near, 16-31 far). The generated scans keep 75%
@@ -302,10 +332,11 @@ def test_mask_lr_zero_freezes_the_measurability_head():
 
 
 @pytest.mark.parametrize('field,value', [('mask_dropout', 1.5), ('mask_noise', -1.0),
-                                         ('mask_lr', 0.0), ('rate_by', 'pixel')])
+                                         ('mask_lr', 0.0), ('rate_by', 'pixel'),
+                                         ('rate_shrink', -1.0), ('rate_shrink', 5.0)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
-  c.drops[field] = value
+  c.drops[field] = value  # rate_shrink 5 with the default rate_by='image'
   with pytest.raises(configs.ConfigError, match=f'drops.{field}'):
     configs.validate(c)
 

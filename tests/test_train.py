@@ -50,6 +50,22 @@ def test_one_and_four_devices_agree(one_device_params):
   assert max(moved) > 1e-3
 
 
+def test_rate_terms_are_the_global_batch_s_on_four_devices():
+  # The rate terms' tallies are summed over the devices, so one and four
+  # devices train the same; 'ring_depth' with shrinking, 'ring' on its own
+  # path. Two steps each. Each device's share of the reals drops at its own
+  # rate, so per-device rates would differ from the batch's.
+  for drops in (dict(rate_weight=1e3, rate_by='ring_depth', rate_shrink=10.0),
+                dict(rate_weight=1e3, rate_by='ring', mask_bias=1.4)):
+    config = tiny_config()
+    config.drops.update(drops)
+    configs.validate(config)
+    rates = np.repeat([0.05, 0.3, 0.6, 0.9], config.batch_size // 4)
+    one = run_steps(2, devices=jax.devices()[:1], config=config, drop_rates=rates)
+    four = run_steps(2, devices=jax.devices(), config=config, drop_rates=rates)
+    assert_same_training(one, four)
+
+
 def _run_two_processes(out):
   """Both workers' (return codes, output); a fresh free port each call."""
   with socket.socket() as s:

@@ -23,14 +23,23 @@ def tiny_config(**overrides):
   return c
 
 
-def fixed_batches(config, sensor, num_steps):
+def fixed_batches(config, sensor, num_steps, drop_rates=None):
+  """Uniform scans; with ``drop_rates`` (one per example), that fraction of
+  each example's pixels is dropped (set to the drop constant)."""
   rng = np.random.default_rng(123)
-  return [rng.uniform(-1, 1, (config.batch_size,) + sensor.shape).astype(np.float32)
-          for _ in range(num_steps)]
+  out = []
+  for _ in range(num_steps):
+    x = rng.uniform(-1, 1, (config.batch_size,) + sensor.shape).astype(np.float32)
+    if drop_rates is not None:
+      rates = np.asarray(drop_rates, np.float32)[:, None, None]
+      x[rng.uniform(size=x.shape) < rates] = -1.0
+    out.append(x)
+  return out
 
 
-def run_steps(num_steps=2, devices=None, config=None):
-  """Trains ``num_steps`` on fixed batches; returns the host params pytree."""
+def run_steps(num_steps=2, devices=None, config=None, drop_rates=None):
+  """Trains ``num_steps`` on fixed batches (fixed_batches); returns the host
+  params pytree."""
   config = config or tiny_config()
   sensor = tiny_sensor(config.sensor.height, config.sensor.width)
   setup = trainer.make_setup(config, sensor)
@@ -39,7 +48,7 @@ def run_steps(num_steps=2, devices=None, config=None):
   state = parallel.replicate(trainer.init_state(setup, jax.random.key(0)), mesh)
   local = parallel.local_batch_size(config.batch_size, mesh)
   lo = jax.process_index() * local
-  for batch in fixed_batches(config, sensor, num_steps):
+  for batch in fixed_batches(config, sensor, num_steps, drop_rates):
     state, _ = step(state, parallel.shard_batch(batch[lo:lo + local], mesh),
                     jax.random.key(1))
   return parallel.to_host({'g': state.g_params, 'd': state.d_params,
