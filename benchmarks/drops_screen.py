@@ -76,6 +76,9 @@ VARIANTS = {
     # Cell targets shrunk towards their ring's rate (as if 10 more pixels
     # kept at it): sparse cells no longer pull towards a noisy 0 or 1.
     'ringdepth100_shrink_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0, 'rate_shrink': 10.0},
+    # The rate term trains only the measurability head (on its expected keep
+    # rate), leaving G's trunk to the GAN loss.
+    'ringdepth100_head_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0, 'rate_head_only': True},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }

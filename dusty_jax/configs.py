@@ -86,6 +86,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
                           # ring_depth: per row and neighbours' depth bin
   d.rate_shrink = 0.0     # ring_depth: cell targets shrunk to the ring's rate,
                           # as if k more pixels kept at it
+  d.rate_head_only = False  # the rate term trains the measurability head only,
+                            # on its expected keep rate
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -160,6 +162,8 @@ def validate(c) -> None:
             "must be 'image', 'ring' or 'ring_depth'")
   need_drop(d.rate_shrink == 0 or d.rate_by == 'ring_depth', 'rate_shrink',
             f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
+  need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
+            'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('mask_bias', 0),
                              ('mask_lr', 1.0), ('ring_bias', False)) if d[f] != off]

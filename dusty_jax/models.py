@@ -117,7 +117,11 @@ class Generator(nn.Module):
     return min(self.ch_base << i, self.ch_max)
 
   @nn.compact
-  def __call__(self, z):
+  def __call__(self, z, detached_head: bool = False):
+    """Raw outputs (B, H, W, C). With ``detached_head`` also the outputs of
+    the same head (its kernel, bias and ring offsets) on the trunk's
+    features under stop_gradient: equal values, whose gradient reaches the
+    head alone (drops.rate_head_only)."""
     h0, w0 = check_shape(self.sensor)
     c = self.channels(3)
     # Transposed conv of a 1x1 input with an (H/16, W/16) kernel == dense.
@@ -131,13 +135,15 @@ class Generator(nn.Module):
                     name=f'up{3 - i}')(x)
       x = layers.leaky_act(
           x, self.param(f'up{3 - i}_bias', nn.initializers.zeros, (x.shape[-1],)))
-    x = EqualConv(self.out_channels, up=True, impl=self.impl, eqlr=self.eqlr,
-                  groups=self.head_groups, name='head')(x)
-    x = x + self.param('head_bias', nn.initializers.zeros, (self.out_channels,))
-    if self.ring_bias:
-      rows = self.param('ring_bias', nn.initializers.zeros, (self.sensor.shape[0],))
-      x = x.at[..., 1].add(rows[:, None])
-    return x
+    head = EqualConv(self.out_channels, up=True, impl=self.impl, eqlr=self.eqlr,
+                     groups=self.head_groups, name='head')
+    bias = self.param('head_bias', nn.initializers.zeros, (self.out_channels,))
+    rows = (self.param('ring_bias', nn.initializers.zeros, (self.sensor.shape[0],))
+            if self.ring_bias else None)
+    def out(features):
+      y = head(features) + bias
+      return y if rows is None else y.at[..., 1].add(rows[:, None])
+    return (out(x), out(jax.lax.stop_gradient(x))) if detached_head else out(x)
 
 
 class Discriminator(nn.Module):

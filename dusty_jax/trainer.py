@@ -79,6 +79,10 @@ class DropOptions:
     ``rate_shrink`` k: each cell's real rate is shrunk towards its ring's,
     (kept + k * ring rate) / (n + k) (cell_rate_penalty). The tallies are
     the global batch's: N devices compute what one does.
+    ``rate_head_only``: the rate term is taken on the expected keep rate
+    (the measurability, not the sampled mask) of the head applied to the
+    trunk's features under stop_gradient, so it trains the measurability
+    head and its biases and leaves G's shared trunk to the GAN loss alone.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -93,6 +97,7 @@ class DropOptions:
   rate_weight: float = 0.0
   rate_by: str = 'image'
   rate_shrink: float = 0.0
+  rate_head_only: bool = False
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -101,7 +106,8 @@ class DropOptions:
                mask_dropout=float(d.mask_dropout), keep_drops=bool(d.keep_drops),
                mask_bias=float(d.mask_bias), mask_lr=float(d.mask_lr),
                rate_weight=float(d.rate_weight), rate_by=str(d.rate_by),
-               rate_shrink=float(d.rate_shrink))
+               rate_shrink=float(d.rate_shrink),
+               rate_head_only=bool(d.rate_head_only))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -376,17 +382,19 @@ def ring_depth_cells(scan, keep, sensor: SensorSpec):
 
 
 def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, shrink: float = 0.0,
-                            axis_name=None):
+                            axis_name=None, keep=None):
   """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
   cells, each cell's target shrunk towards its ring's rate by ``shrink``.
   ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are not
   differentiated. The real rates are the training batch's (with
   ``axis_name``, summed over the devices): cells the batch barely fills give
-  noisy targets, which ``shrink`` calms."""
+  noisy targets, which ``shrink`` calms. ``keep``: the generated keep values
+  to differentiate (default: the mask ``fake[1]``, which bins the cells)."""
   cells = lambda scan, keep: ring_depth_cells(lax.stop_gradient(scan),
                                               lax.stop_gradient(keep) > 0.5, sensor)
   h = fake[0].shape[1]
-  return cell_rate_penalty(fake[1], real[1], cells(*fake), cells(*real),
+  keep = fake[1] if keep is None else keep
+  return cell_rate_penalty(keep, real[1], cells(*fake), cells(*real),
                            h * RATE_DEPTH_BINS, shrink, h, axis_name)
 
 
@@ -432,19 +440,23 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
   ``key``: the augmentation keys, one per example. With point-drop options
   ``fake`` is the pair (scans, keep-masks) and ``real`` the real batch's
   (scans, keep-masks) pair (for ``rate_weight``); the returned loss is then the
-  adversarial loss alone, without the rate penalty.
+  adversarial loss alone, without the rate penalty. With ``rate_head_only``
+  ``fake`` is (scans, keep-masks, keep probabilities of the detached head),
+  and the rate term is taken on the third.
   """
   d_local = _local(d_params, axis_name)
 
   def objective(scan):
-    adv = losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, scan)))
+    view = scan[:2] if isinstance(scan, tuple) else scan
+    adv = losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, view)))
     if setup.drops.rate_weight == 0:
       return adv, adv
+    keep = scan[2] if setup.drops.rate_head_only else scan[1]
     if setup.drops.rate_by == 'ring_depth':
-      penalty = ring_depth_rate_penalty(setup.sensor, scan, real, setup.drops.rate_shrink,
-                                        axis_name)
+      penalty = ring_depth_rate_penalty(setup.sensor, view, real, setup.drops.rate_shrink,
+                                        axis_name, keep)
     else:
-      penalty = rate_penalty(setup.drops, scan[1], real[1], axis_name)
+      penalty = rate_penalty(setup.drops, keep, real[1], axis_name)
     return adv + setup.drops.rate_weight * penalty, adv
 
   (_, loss_g), dscan = jax.value_and_grad(objective, has_aux=True)(fake)
@@ -494,6 +506,12 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
 
   # Generator forward once; its VJP serves the G update.
   def fakes(p):
+    if setup.drops.rate_head_only:
+      raw, raw_head = setup.generator.apply(p, z, detached_head=True)
+      variant = setup.settings.variant
+      out = variant.compose_per_example(raw, kmask, setup.settings.tau, True,
+                                        setup.drop_const)
+      return out['scan'], out['mask'], variant.measurability(variant.logit(raw_head))
     out = fake_scans(setup, p, z, kmask)
     return out['scan'], out['mask']
   real, real_keep = batch, (batch > codec.ALPHA).astype(batch.dtype)
@@ -507,7 +525,8 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
                                    has_aux=True)
 
   d_params, d_opt, d_metrics = d_step(
-      setup, state.d_params, state.d_opt, real, fake, (kar, kaf),
+      setup, state.d_params, state.d_opt, real, fake[:2] if isinstance(fake, tuple) else fake,
+      (kar, kaf),
       (state.step % setup.r1_every) == 0, axis_name)
   g_params, g_opt, loss_g = g_step(setup, state.g_params, state.g_opt, d_params,
                                    fake, fake_vjp, kag, axis_name, real)

@@ -234,6 +234,28 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
     assert (np.asarray(bins) == want).all(), (d, np.unique(bins))
 
 
+def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
+  _, setup, state = _setup(ring_keep=np.linspace(0.3, 0.9, 16), rate_weight=1.0,
+                           rate_by='ring', rate_head_only=True, ring_bias=True)
+  gen, variant = setup.generator, setup.settings.variant
+  z = jax.random.normal(jax.random.key(2), (4, setup.settings.latent_dim))
+  raw, raw_head = gen.apply(state.g_params, z, detached_head=True)
+  np.testing.assert_array_equal(raw, raw_head)
+  np.testing.assert_array_equal(raw, gen.apply(state.g_params, z))
+  real = jnp.asarray(_scans_and_keep(b=4, rate=0.5)[1])
+
+  def rate(p, detached):
+    out = gen.apply(p, z, detached_head=True)[1 if detached else 0]
+    return trainer.rate_penalty(setup.drops, variant.measurability(variant.logit(out)), real)
+  for detached in (True, False):
+    g = jax.grad(rate)(state.g_params, detached)['params']
+    head = {'head', 'head_bias', 'ring_bias'}
+    assert all(float(jnp.abs(l).max()) > 0 for k in head for l in jax.tree.leaves(g[k]))
+    trunk = max(float(jnp.abs(l).max()) for k in g if k not in head
+                for l in jax.tree.leaves(g[k]))
+    assert (trunk == 0.0) if detached else (trunk > 0.0)
+
+
 def test_mask_bias_sets_the_initial_keep_rate():
   _, setup, state = _setup(mask_bias=2.0)
   np.testing.assert_array_equal(state.g_params['params']['head_bias'], [0.0, 2.0])
@@ -297,7 +319,8 @@ def test_a_step_with_every_option_runs_and_sees_the_mask():
   # test_mask_lr_zero_freezes_the_measurability_head.
   c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_channel=1.0, mask_noise=0.1,
                            mask_dropout=0.5, keep_drops=True, mask_bias=1.4, mask_lr=0.5,
-                           rate_weight=1e4, rate_by='ring_depth', ring_bias=True)
+                           rate_weight=1e4, rate_by='ring_depth', rate_shrink=5.0,
+                           rate_head_only=True, ring_bias=True)
   # D's first kernel sees 2 channels, each blurred two ways.
   assert state.d_params['params']['down0']['kernel'].shape[2] == 4
   mesh = parallel.data_mesh(jax.devices()[:1])
@@ -333,10 +356,12 @@ def test_mask_lr_zero_freezes_the_measurability_head():
 
 @pytest.mark.parametrize('field,value', [('mask_dropout', 1.5), ('mask_noise', -1.0),
                                          ('mask_lr', 0.0), ('rate_by', 'pixel'),
-                                         ('rate_shrink', -1.0), ('rate_shrink', 5.0)])
+                                         ('rate_shrink', -1.0), ('rate_shrink', 5.0),
+                                         ('rate_head_only', True)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
-  c.drops[field] = value  # rate_shrink 5 with the default rate_by='image'
+  c.drops[field] = value  # rate_shrink with rate_by='image', rate_head_only
+                          # without a rate term
   with pytest.raises(configs.ConfigError, match=f'drops.{field}'):
     configs.validate(c)
 
