@@ -233,16 +233,21 @@ DROPS_VARIANT = dict(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
 # measurability has one learned offset per ring, started at that ring's rate.
 RANGE_DROPS_VARIANT = dict(rate_weight=100.0, rate_by='ring_depth', mask_bias=1.386,
                            ring_bias=True)
+# The same, with the rate term training only the measurability head (on its
+# expected keep rate): G's shared trunk is left to the GAN loss.
+HEAD_DROPS_VARIANT = dict(RANGE_DROPS_VARIANT, rate_head_only=True)
 # Study model suffix -> the drops options it adds (beyond the paper).
-STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT}
+STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT,
+               '_headdrops': HEAD_DROPS_VARIANT}
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
   """``model``: baseline, dusty1, dusty2, dusty1_noaug (DUSty-I without
   DiffAugment: at the CPU scale the discriminator cannot see point-drops
   through the augmentation, see benchmarks/results/study.md), or
-  dusty1_drops / dusty2_drops (with DROPS_VARIANT), or dusty1_rangedrops /
-  dusty2_rangedrops (with RANGE_DROPS_VARIANT)."""
+  dusty1_drops / dusty2_drops (with DROPS_VARIANT), dusty1_rangedrops /
+  dusty2_rangedrops (with RANGE_DROPS_VARIANT), or dusty1_headdrops /
+  dusty2_headdrops (with HEAD_DROPS_VARIANT)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()
