@@ -248,6 +248,47 @@ def merge(a):
           f'min after 500 {min([d for s, d in zip(c["step"], c["drop_rate"]) if s > 500] or [float("nan")]):.4f}')
 
 
+def stages(a):
+  """One plot of the evaluations a run got at several lengths (--stages:
+  result JSONs of the same variants at growing --steps): the measurability's
+  AUC and ECE, and the depth's completion and fit errors, against the step."""
+  runs = {}
+  for path in [p for p in a.stages.split(',') if p]:
+    with open(path) as f:
+      r = json.load(f)
+    for name, v in r['results'].items():
+      runs.setdefault(name, []).append((r['steps'], v['eval']))
+  plt = common.pyplot()
+  fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+  for name, evs in runs.items():
+    evs.sort(key=lambda e: e[0])
+    steps = [s for s, _ in evs]
+    line, = axes[0].plot(steps, [e['measurability']['auc_near'] for _, e in evs], 'o-',
+                         label=f'{name}: AUC <40 m')
+    axes[0].plot(steps, [e['measurability']['ece'] for _, e in evs], 's--',
+                 color=line.get_color(), label=f'{name}: ECE')
+    axes[1].plot(steps, [e['fit']['abs_rel'] for _, e in evs], 'o-', color=line.get_color(),
+                 label=f'{name}: fit')
+    axes[1].plot(steps, [e['completion']['abs_rel'] for _, e in evs], 's--',
+                 color=line.get_color(), label=f'{name}: completion')
+  axes[0].set_title('measurability (held-out scans)')
+  axes[1].set_title('depth: AbsRel of the inverted x_tilde')
+  for ax in axes:
+    ax.set_xlabel('training step (batch 16)')
+    ax.legend(fontsize=7)
+  fig.suptitle(a.title)
+  fig.tight_layout()
+  os.makedirs(a.out, exist_ok=True)
+  fig.savefig(os.path.join(a.out, f'{a.name}.png'), dpi=110)
+  common.write_json(os.path.join(a.out, f'{a.name}.json'),
+                    {name: [dict(steps=s, **e) for s, e in evs] for name, evs in runs.items()})
+  for name, evs in runs.items():
+    for s, e in evs:
+      print(f'{name:30s} {s:5d} steps: AUC <40 m {e["measurability"]["auc_near"]:.3f}, '
+            f'ECE {e["measurability"]["ece"]:.3f}, completion {e["completion"]["abs_rel"]:.3f}, '
+            f'fit {e["fit"]["abs_rel"]:.3f}')
+
+
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument('--workdir', default='runs/screen')
@@ -267,7 +308,12 @@ def main(argv=None):
   p.add_argument('--runs', default='',
                  help='NAME=RUN_DIR,...: plot the drop-rate curves of these '
                       'training runs (no training; e.g. a run on another machine)')
+  p.add_argument('--stages', default='',
+                 help='comma-separated result JSONs of the same runs at growing '
+                      '--steps: plot their evaluations against the step (no training)')
   a = p.parse_args(argv)
+  if a.stages:
+    return stages(a)
   if a.merge or a.runs:
     return merge(a)
   from dusty_jax import codec, sensor as sensor_lib, trainer
