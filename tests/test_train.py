@@ -52,18 +52,31 @@ def test_one_and_four_devices_agree(one_device_params):
 
 def test_rate_terms_are_the_global_batch_s_on_four_devices():
   # The rate terms' tallies are summed over the devices, so one and four
-  # devices train the same; 'ring_depth' with shrinking, 'ring' on its own
-  # path. Two steps each. Each device's share of the reals drops at its own
-  # rate, so per-device rates would differ from the batch's.
-  for drops in (dict(rate_weight=1e3, rate_by='ring_depth', rate_shrink=10.0),
-                dict(rate_weight=1e3, rate_by='ring', mask_bias=1.4)):
-    config = tiny_config()
-    config.drops.update(drops)
-    configs.validate(config)
-    rates = np.repeat([0.05, 0.3, 0.6, 0.9], config.batch_size // 4)
-    one = run_steps(2, devices=jax.devices()[:1], config=config, drop_rates=rates)
-    four = run_steps(2, devices=jax.devices(), config=config, drop_rates=rates)
-    assert_same_training(one, four)
+  # devices train the same. Each device's share of the reals drops at its
+  # own rate, so per-device rates would differ from the batch's. Two steps.
+  config = tiny_config()
+  config.drops.update(rate_weight=1e3, rate_by='ring_depth', rate_shrink=10.0)
+  configs.validate(config)
+  rates = np.repeat([0.05, 0.3, 0.6, 0.9], config.batch_size // 4)
+  one = run_steps(2, devices=jax.devices()[:1], config=config, drop_rates=rates)
+  four = run_steps(2, devices=jax.devices(), config=config, drop_rates=rates)
+  assert_same_training(one, four)
+
+
+@pytest.mark.parametrize('rate_by', ['image', 'ring'])
+def test_rate_penalty_on_four_devices_is_the_global_batch_s(rate_by):
+  from jax.sharding import PartitionSpec as P
+  drops = trainer.DropOptions(rate_weight=1.0, rate_by=rate_by)
+  rng = np.random.default_rng(3)
+  keep = rng.uniform(size=(8, 16, 64)).astype(np.float32)
+  # Each device's pair of scans keeps at its own rate.
+  real = (rng.uniform(size=keep.shape) < np.repeat([0.9, 0.6, 0.3, 0.1], 2)[:, None, None])
+  real = real.astype(np.float32)
+  alone = trainer.rate_penalty(drops, keep, real)
+  sharded = jax.jit(jax.shard_map(lambda k, r: trainer.rate_penalty(drops, k, r, parallel.AXIS),
+                                  mesh=parallel.data_mesh(jax.devices()),
+                                  in_specs=(P(parallel.AXIS), P(parallel.AXIS)), out_specs=P()))
+  np.testing.assert_allclose(sharded(keep, real), alone, rtol=1e-5)
 
 
 def _run_two_processes(out):
