@@ -79,6 +79,8 @@ VARIANTS = {
     # The rate term trains only the measurability head (on its expected keep
     # rate), leaving G's trunk to the GAN loss.
     'ringdepth100_head_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0, 'rate_head_only': True},
+    'channel_ringdepth100_head_ring_bias': {**CHANNEL, **RING_DEPTH, 'rate_weight': 100.0,
+                                            'rate_head_only': True},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }
