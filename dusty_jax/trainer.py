@@ -230,11 +230,18 @@ def scale_mask_updates(updates, factor: float):
                                 'head_bias': params['head_bias'] * scale}}
 
 
-def fake_scans(setup: Setup, params, z, keys, train=True):
-  """Generator forward and rendering; ``keys``: one per example."""
-  raw = setup.generator.apply(params, z)
-  return setup.settings.variant.compose_per_example(
-      raw, keys, setup.settings.tau, train, setup.drop_const)
+def fake_scans(setup: Setup, params, z, keys, train=True, detached_head=False):
+  """Generator forward and rendering; ``keys``: one per example. With
+  ``detached_head`` the dict also holds ``head_keep``: the measurability of
+  the head applied to the trunk's features under stop_gradient (the same
+  values; its gradient reaches the head alone: drops.rate_head_only)."""
+  variant = setup.settings.variant
+  raw = setup.generator.apply(params, z, detached_head=detached_head)
+  raw, raw_head = raw if detached_head else (raw, None)
+  out = variant.compose_per_example(raw, keys, setup.settings.tau, train, setup.drop_const)
+  if detached_head:
+    out['head_keep'] = variant.measurability(variant.logit(raw_head))
+  return out
 
 
 # ----------------------------------------------------------------------------
@@ -506,14 +513,8 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
 
   # Generator forward once; its VJP serves the G update.
   def fakes(p):
-    if setup.drops.rate_head_only:
-      raw, raw_head = setup.generator.apply(p, z, detached_head=True)
-      variant = setup.settings.variant
-      out = variant.compose_per_example(raw, kmask, setup.settings.tau, True,
-                                        setup.drop_const)
-      return out['scan'], out['mask'], variant.measurability(variant.logit(raw_head))
-    out = fake_scans(setup, p, z, kmask)
-    return out['scan'], out['mask']
+    out = fake_scans(setup, p, z, kmask, detached_head=setup.drops.rate_head_only)
+    return (out['scan'], out['mask']) + ((out['head_keep'],) if 'head_keep' in out else ())
   real, real_keep = batch, (batch > codec.ALPHA).astype(batch.dtype)
   if setup.drops.d_sees_mask or setup.drops.g_needs_mask:
     # The mask is an output G is differentiated through, not only aux.
