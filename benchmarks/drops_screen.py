@@ -81,6 +81,10 @@ VARIANTS = {
     'ringdepth100_head_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0, 'rate_head_only': True},
     'channel_ringdepth100_head_ring_bias': {**CHANNEL, **RING_DEPTH, 'rate_weight': 100.0,
                                             'rate_head_only': True},
+    # ... and no gradient of the mask (the GAN's straight-through one either)
+    # reaches the trunk: it learns from x_tilde alone.
+    'ringdepth100_detached_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0,
+                                        'rate_head_only': True, 'mask_detached': True},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }

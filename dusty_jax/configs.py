@@ -88,6 +88,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
                           # as if k more pixels kept at it
   d.rate_head_only = False  # the rate term trains the measurability head only,
                             # on its expected keep rate
+  d.mask_detached = False   # no gradient of the mask reaches G's trunk: the
+                            # measurability head works on its features, detached
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -166,7 +168,8 @@ def validate(c) -> None:
             'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('mask_bias', 0),
-                             ('mask_lr', 1.0), ('ring_bias', False)) if d[f] != off]
+                             ('mask_lr', 1.0), ('ring_bias', False),
+                             ('mask_detached', False)) if d[f] != off]
   if acting:  # the first option set names the error
     need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act on')
 

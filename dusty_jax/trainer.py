@@ -83,6 +83,11 @@ class DropOptions:
     (the measurability, not the sampled mask) of the head applied to the
     trunk's features under stop_gradient, so it trains the measurability
     head and its biases and leaves G's shared trunk to the GAN loss alone.
+  * ``mask_detached``: the measurability channels come from the head on
+    the trunk's features under stop_gradient (the same values), so no
+    gradient of the mask (the GAN loss's straight-through one, the rate
+    term's) reaches G's shared trunk: the trunk learns from x_tilde alone,
+    the head's measurability kernel and biases from the mask.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -98,6 +103,7 @@ class DropOptions:
   rate_by: str = 'image'
   rate_shrink: float = 0.0
   rate_head_only: bool = False
+  mask_detached: bool = False
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -107,7 +113,8 @@ class DropOptions:
                mask_bias=float(d.mask_bias), mask_lr=float(d.mask_lr),
                rate_weight=float(d.rate_weight), rate_by=str(d.rate_by),
                rate_shrink=float(d.rate_shrink),
-               rate_head_only=bool(d.rate_head_only))
+               rate_head_only=bool(d.rate_head_only),
+               mask_detached=bool(d.mask_detached))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -234,10 +241,14 @@ def fake_scans(setup: Setup, params, z, keys, train=True, detached_head=False):
   """Generator forward and rendering; ``keys``: one per example. With
   ``detached_head`` the dict also holds ``head_keep``: the measurability of
   the head applied to the trunk's features under stop_gradient (the same
-  values; its gradient reaches the head alone: drops.rate_head_only)."""
+  values; its gradient reaches the head alone: drops.rate_head_only). With
+  drops.mask_detached the composition's measurability is that one."""
   variant = setup.settings.variant
-  raw = setup.generator.apply(params, z, detached_head=detached_head)
-  raw, raw_head = raw if detached_head else (raw, None)
+  detach = detached_head or setup.drops.mask_detached
+  raw = setup.generator.apply(params, z, detached_head=detach)
+  raw, raw_head = raw if detach else (raw, None)
+  if setup.drops.mask_detached:  # depth from the trunk, the mask from the head alone
+    raw = jnp.concatenate([raw[..., :1], raw_head[..., 1:]], axis=-1)
   out = variant.compose_per_example(raw, keys, setup.settings.tau, train, setup.drop_const)
   if detached_head:
     out['head_keep'] = variant.measurability(variant.logit(raw_head))

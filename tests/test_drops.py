@@ -1,6 +1,8 @@
 """The point-drop mechanisms beyond the paper (config ``drops``), each against
 what it should compute."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -254,6 +256,39 @@ def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
     trunk = max(float(jnp.abs(l).max()) for k in g if k not in head
                 for l in jax.tree.leaves(g[k]))
     assert (trunk == 0.0) if detached else (trunk > 0.0)
+
+
+@pytest.mark.parametrize('model', ['dusty1', 'dusty2'])
+def test_mask_detached_keeps_every_mask_gradient_off_the_trunk(model):
+  kw = dict(ring_keep=np.linspace(0.3, 0.9, 16), ring_bias=True, mask_bias=1.0)
+  c, setup, state = _setup(**kw)
+  c.model = model
+  setup = trainer.make_setup(c, setup.sensor)
+  state = trainer.init_state(setup, jax.random.key(0), kw['ring_keep'])
+  detached = setup.replace(drops=dataclasses.replace(setup.drops, mask_detached=True))
+  z = jax.random.normal(jax.random.key(2), (4, setup.settings.latent_dim))
+  keys = jax.random.split(jax.random.key(3), 4)
+  weights = jax.random.normal(jax.random.key(4), (4,) + setup.sensor.shape)
+  # The same scans, masks and depth with and without the option.
+  for k in ('scan', 'mask', 'inv_depth', 'logit'):
+    np.testing.assert_array_equal(trainer.fake_scans(setup, state.g_params, z, keys)[k],
+                                  trainer.fake_scans(detached, state.g_params, z, keys)[k])
+  head = {'head', 'head_bias', 'ring_bias'}
+  def grads(s, what):
+    return jax.grad(lambda p: jnp.sum(
+        weights * trainer.fake_scans(s, p, z, keys)[what]))(state.g_params)['params']
+  def trunk(g):
+    return max(float(jnp.abs(l).max()) for k in g if k not in head for l in jax.tree.leaves(g[k]))
+  # The mask (straight-through to the measurability) reaches the trunk only
+  # without the option; with it, the head's mask kernel still learns.
+  assert trunk(grads(setup, 'mask')) > 0
+  g = grads(detached, 'mask')
+  assert trunk(g) == 0.0
+  assert float(jnp.abs(g['head']['kernel'][..., 1:]).max()) > 0
+  assert float(jnp.abs(g['ring_bias']).max()) > 0
+  # x_tilde trains the trunk as before, to the bit.
+  a, b = grads(setup, 'inv_depth'), grads(detached, 'inv_depth')
+  jax.tree.map(np.testing.assert_array_equal, a, b)
 
 
 def test_mask_bias_sets_the_initial_keep_rate():
