@@ -239,9 +239,12 @@ RANGE_DROPS_VARIANT = dict(rate_weight=100.0, rate_by='ring_depth', mask_bias=1.
 # The same, with the rate term training only the measurability head (on its
 # expected keep rate): G's shared trunk is left to the GAN loss.
 HEAD_DROPS_VARIANT = dict(RANGE_DROPS_VARIANT, rate_head_only=True)
+# The same, with no gradient of the mask reaching the trunk at all (the GAN's
+# straight-through one included): the trunk learns from x_tilde alone.
+DETACHED_DROPS_VARIANT = dict(HEAD_DROPS_VARIANT, mask_detached=True)
 # Study model suffix -> the drops options it adds (beyond the paper).
 STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT,
-               '_headdrops': HEAD_DROPS_VARIANT}
+               '_headdrops': HEAD_DROPS_VARIANT, '_detdrops': DETACHED_DROPS_VARIANT}
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
@@ -249,8 +252,9 @@ def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
   DiffAugment: at the CPU scale the discriminator cannot see point-drops
   through the augmentation, see benchmarks/results/study.md), or
   dusty1_drops / dusty2_drops (with DROPS_VARIANT), dusty1_rangedrops /
-  dusty2_rangedrops (with RANGE_DROPS_VARIANT), or dusty1_headdrops /
-  dusty2_headdrops (with HEAD_DROPS_VARIANT)."""
+  dusty2_rangedrops (with RANGE_DROPS_VARIANT), dusty1_headdrops /
+  dusty2_headdrops (with HEAD_DROPS_VARIANT), or dusty1_detdrops /
+  dusty2_detdrops (with DETACHED_DROPS_VARIANT)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()

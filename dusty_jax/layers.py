@@ -8,8 +8,10 @@ Two implementations of each convolution, chosen per backend (``impl``):
     the CPU, XLA's convolution gradients (and the double-backward of the R1
     penalty) are several times slower than matmuls of the same size; written
     this way, forward, backward and double-backward are all plain matmuls.
-    One exception, measured: the generator's head (few output channels)
-    takes its gradient from ``lax.conv`` (``_up_few``).
+    Exceptions, measured: the generator's head (few output channels)
+    takes its gradient from ``lax.conv`` (``_up_few``), and its up-convs of
+    at most TAP_MAX_CIN input channels sum four shifted matmuls
+    (``tap_conv``) instead of gathering patches.
   * ``'xla'``: ``lax.conv_general_dilated``, which maps to cuDNN on a GPU.
 Both compute the same function; tests check they agree.
 """
@@ -88,6 +90,48 @@ def conv_down(x, w, impl: str):
 
 # conv_up uses col2im when Cout * COL2IM_RATIO <= Cin, im2col otherwise.
 COL2IM_RATIO = 8
+# ... and, for im2col, the four-tap form (tap_conv) when Cin <= TAP_MAX_CIN.
+# Measured on a 2-core EPYC (benchmarks/step_phases.py): at the CPU study's
+# sizes (Cin 32..128) the generator's VJP takes 0.8x the time of patches and
+# its forward 0.4x; at the paper's Cin of 256 and 512 the two are even.
+TAP_MAX_CIN = 128
+
+
+def _tap_sum(x, t):
+  ho, wo = x.shape[1] - 1, x.shape[2] - 1
+  return sum(_matmul(x[:, a:a + ho, b:b + wo], t[a, b]) for a in range(2) for b in range(2))
+
+
+@jax.custom_vjp
+def tap_conv(x, t):
+  """A 2x2 valid convolution as the sum of four matmuls of shifted views:
+  (B, H+1, W+1, K), taps (2, 2, K, N) -> (B, H, W, N), out[i, j] =
+  sum_ab x[i+a, j+b] @ t[a, b]. XLA's CPU backend fuses the slices into the
+  matmuls, where patches would copy the input four times.
+
+  Its VJP keeps that form: the input's gradient is the same map on the
+  padded cotangent with the taps flipped and transposed, the taps' gradient
+  one contraction per tap. Autodiff of the forward would instead pad four
+  (B, H+1, W+1, K) products."""
+  return _tap_sum(x, t)
+
+
+def _tap_conv_fwd(x, t):
+  return tap_conv(x, t), (x, t)
+
+
+def _tap_conv_bwd(residuals, ct):
+  x, t = residuals
+  ho, wo = ct.shape[1], ct.shape[2]
+  dx = tap_conv(jnp.pad(ct, ((0, 0), (1, 1), (1, 1), (0, 0))),
+                jnp.swapaxes(t[::-1, ::-1], 2, 3))
+  over_pixels = (((0, 1, 2), (0, 1, 2)), ((), ()))
+  dt = jnp.stack([jnp.stack([lax.dot_general(x[:, a:a + ho, b:b + wo], ct, over_pixels)
+                             for b in range(2)]) for a in range(2)])
+  return dx, dt
+
+
+tap_conv.defvjp(_tap_conv_fwd, _tap_conv_bwd)
 
 # For output phase r of the stride-2 transposed conv (padding 3 after a
 # 1-pixel pad), the two input taps at offsets r, r+1 use kernel rows:
@@ -107,16 +151,20 @@ def conv_up(x, w, impl: str):
   if impl == 'xla':
     return _up_lax(x, w)
   if cout * COL2IM_RATIO > w.shape[2]:
-    # im2col: per output phase, 2x2 patches of the padded input (4 * Cin)
-    # times the phase's taps. Forward and backward are plain matmuls.
+    # im2col: per output phase, the 2x2 taps of the padded input times the
+    # phase's kernel taps, by tap_conv or by patches (4 * Cin) and one
+    # matmul. Forward and backward are plain matmuls.
     phases = []
     for ry in range(2):
       row = []
       for rx in range(2):
         taps = jnp.stack([jnp.stack([w[a, c] for c in _UP_TAPS[rx]])
                           for a in _UP_TAPS[ry]])
-        p = _patches(x[:, ry:ry + h + 1, rx:rx + wd + 1], 2, 2)
-        row.append(_matmul(p, taps.reshape(-1, cout)))
+        window = x[:, ry:ry + h + 1, rx:rx + wd + 1]
+        if w.shape[2] <= TAP_MAX_CIN:
+          row.append(tap_conv(window, taps))
+        else:
+          row.append(_matmul(_patches(window, 2, 2), taps.reshape(-1, cout)))
       phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
     y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
     return y.reshape(b, 2 * h, 2 * wd, cout)

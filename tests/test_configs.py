@@ -12,7 +12,8 @@ from train_helpers import tiny_config
 
 def test_every_experiment_config_is_complete():
   configs.validate(tiny_config())
-  for name in ('baseline', 'dusty1', 'dusty2_drops', 'dusty1_rangedrops', 'dusty1_headdrops'):
+  for name in ('baseline', 'dusty1', 'dusty2_drops', 'dusty1_rangedrops', 'dusty1_headdrops',
+               'dusty1_detdrops'):
     configs.validate(configs.study(name))
 
 

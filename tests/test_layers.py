@@ -45,8 +45,11 @@ def data():
           rng.normal(size=(4, 4, 3, 5)).astype(np.float32))
 
 
-@pytest.mark.parametrize('impl', ['matmul', 'xla'])
-def test_conv_up_matches_brute_force(data, impl):
+@pytest.mark.parametrize('impl,tap_max_cin', [('matmul', layers.TAP_MAX_CIN),
+                                               ('matmul', 0), ('xla', 0)])
+def test_conv_up_matches_brute_force(data, impl, tap_max_cin, monkeypatch):
+  # matmul: tap_conv (3 <= TAP_MAX_CIN input channels), and patches (0).
+  monkeypatch.setattr(layers, 'TAP_MAX_CIN', tap_max_cin)
   x, w = data
   want = _np_conv_transpose(_np_cylinder_pad(x), w)
   got = layers.conv_up(jnp.asarray(x), jnp.asarray(w), impl)
@@ -79,6 +82,31 @@ def test_conv_up_few_outputs_col2im_matches_brute_force(impl):
   np.testing.assert_allclose(np.sum(gw * dw),
                              np.sum(ct * _np_conv_transpose(_np_cylinder_pad(x), dw)),
                              rtol=1e-4)
+
+
+def test_tap_conv_vjp_is_the_adjoint_and_differentiates_again():
+  rng = np.random.default_rng(2)
+  x = rng.normal(size=(2, 5, 9, 3)).astype(np.float32)
+  t = rng.normal(size=(2, 2, 3, 4)).astype(np.float32)
+  def brute(x, t):
+    return sum(np.einsum('bhwk,kn->bhwn', x[:, a:a + 4, b:b + 8], t[a, b])
+               for a in range(2) for b in range(2))
+  want = brute(x, t)
+  np.testing.assert_allclose(layers.tap_conv(x, t), want, rtol=1e-5, atol=1e-5)
+  # <ct, f(dx, t)> = <vjp_x(ct), dx> and <ct, f(x, dt)> = <vjp_t(ct), dt>.
+  ct = rng.normal(size=want.shape)
+  dx, dt = rng.normal(size=x.shape), rng.normal(size=t.shape)
+  gx, gt = jax.vjp(layers.tap_conv, x, t)[1](jnp.asarray(ct, jnp.float32))
+  np.testing.assert_allclose(np.sum(gx * dx), np.sum(ct * brute(dx, t)), rtol=1e-4)
+  np.testing.assert_allclose(np.sum(gt * dt), np.sum(ct * brute(x, dt)), rtol=1e-4)
+  # The VJP is itself differentiable (as R1's double backward needs of any
+  # layer): against lax.conv, which computes the same map.
+  ref = lambda x, t: jax.lax.conv_general_dilated(x, t, (1, 1), 'VALID',
+                                                  dimension_numbers=('NHWC', 'HWIO', 'NHWC'))
+  def second(f):
+    return jax.grad(lambda t: jnp.sum(jnp.sin(jax.grad(
+        lambda x: jnp.sum(jnp.cos(f(x, t))))(x)) ** 2))(t)
+  np.testing.assert_allclose(second(layers.tap_conv), second(ref), rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize('impl', ['matmul', 'xla'])
