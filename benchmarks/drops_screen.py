@@ -85,6 +85,8 @@ VARIANTS = {
     # reaches the trunk: it learns from x_tilde alone.
     'ringdepth100_detached_ring_bias': {**RING_DEPTH, 'rate_weight': 100.0,
                                         'rate_head_only': True, 'mask_detached': True},
+    'dusty2_detached_ring_bias': {'model': 'dusty2', **RING_DEPTH, 'rate_weight': 100.0,
+                                  'rate_head_only': True, 'mask_detached': True},
     'ringrate_ring_bias': {'rate_weight': 10.0, 'rate_by': 'ring',
                            'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True},
 }

@@ -55,8 +55,8 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_detdrops': 'DUSty-I, drops by ring and range, mask detached',
           'dusty2_detdrops': 'DUSty-II, drops by ring and range, mask detached'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
-EXPORT_NAMES = {'dusty1_drops': 'sim-dusty1', 'dusty1': 'sim-dusty1-authors',
-                'baseline': 'sim-baseline'}
+EXPORT_NAMES = {'dusty1_detdrops': 'sim-dusty1', 'dusty1_drops': 'sim-dusty1-channel',
+                'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
 TRADE_ITERS = (50, 100, 200, 500, 1000)
