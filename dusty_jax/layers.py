@@ -4,20 +4,24 @@ A range image is a cylinder: every convolution pads horizontally by wrapping
 around and vertically by reflection. Tensors are NHWC.
 
 Two implementations of each convolution, chosen per backend (``impl``):
-  * ``'matmul'``: patches gathered with slices, then one matrix product. On
-    the CPU, XLA's convolution gradients (and the double-backward of the R1
-    penalty) are several times slower than matmuls of the same size; written
-    this way, forward, backward and double-backward are all plain matmuls.
-    Exceptions, measured: the generator's head (few output channels)
-    takes its gradient from ``lax.conv`` (``_up_few``), and its up-convs of
-    at most TAP_MAX_CIN input channels sum four shifted matmuls
-    (``tap_conv``) instead of gathering patches.
-  * ``'xla'``: ``lax.conv_general_dilated``, which maps to cuDNN on a GPU.
+  * ``'matmul'``, the CPU's: a layer is three linear maps, the conv ``F(x,
+    w)`` and its transposes in ``x`` (``Dx``) and in ``w`` (``Dw``), and the
+    VJP of each is two of the others, to every order (R1's double backward
+    included). Each of the three is computed in the form measured fastest on
+    the CPU for the layer's size (``plan``): patches gathered with slices
+    and one matrix product, four shifted matmuls (``tap_conv``), col2im for
+    the generator's head, or ``lax.conv``. XLA's CPU convolution gradients
+    are in places many times slower than matmuls of the same size, and
+    elsewhere faster: one form for the whole layer loses either way.
+  * ``'xla'``: ``lax.conv_general_dilated`` differentiated by XLA, which maps
+    to cuDNN on a GPU.
 Both compute the same function; tests check they agree.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 
 import jax
@@ -72,15 +76,29 @@ def space_to_depth(x):
   return x.reshape(b, h // 2, w // 2, 4 * c)
 
 
+def _promote(x, w):
+  """x and w in one dtype, as lax.conv requires (matmuls would promote)."""
+  dtype = jnp.result_type(x, w)
+  return x.astype(dtype), w.astype(dtype)
+
+
 def conv_down(x, w, impl: str):
   """4x4 stride-2 convolution after a 1-pixel cylinder pad: (H, W) -> (H/2, W/2).
 
   ``w``: (4, 4, Cin, Cout), already scaled.
   """
-  x = cylinder_pad(x, 1, 1, 1, 1)
+  x, w = _promote(cylinder_pad(x, 1, 1, 1, 1), w)
   if impl == 'xla':
-    return lax.conv_general_dilated(x, w, (2, 2), 'VALID',
-                                    dimension_numbers=('NHWC', 'HWIO', 'NHWC'))
+    return _down_lax(x, w)
+  return _conv(plan('down', x.shape, w.shape), x, w)
+
+
+def _down_lax(x, w):
+  return lax.conv_general_dilated(x, w, (2, 2), 'VALID',
+                                  dimension_numbers=('NHWC', 'HWIO', 'NHWC'))
+
+
+def _down_matmul(x, w):
   # A 4x4 stride-2 conv is a 2x2 stride-1 conv of the space-to-depth input.
   cin, cout = w.shape[2], w.shape[3]
   w_s2d = w.reshape(2, 2, 2, 2, cin, cout).transpose(0, 2, 1, 3, 4, 5)
@@ -144,32 +162,36 @@ def conv_up(x, w, impl: str):
   The authors' ``ConvTranspose2d(k=4, s=2, p=3)`` on a padded input. ``w``:
   (4, 4, Cin, Cout), already scaled, indexed as PyTorch's transposed kernel.
   """
-  x = cylinder_pad(x, 1, 1, 1, 1)
+  x, w = _promote(cylinder_pad(x, 1, 1, 1, 1), w)
+  if impl == 'xla':
+    return _up_lax(x, w)
+  return _conv(plan('up', x.shape, w.shape), x, w)
+
+
+def _up_matmul(x, w):
+  """conv_up of an already padded input by matmuls: im2col (tap_conv or
+  patches), or col2im for few output channels (the generator's head)."""
   b, hp, wp, _ = x.shape
   h, wd = hp - 2, wp - 2
   cout = w.shape[3]
-  if impl == 'xla':
-    return _up_lax(x, w)
-  if cout * COL2IM_RATIO > w.shape[2]:
-    # im2col: per output phase, the 2x2 taps of the padded input times the
-    # phase's kernel taps, by tap_conv or by patches (4 * Cin) and one
-    # matmul. Forward and backward are plain matmuls.
-    phases = []
-    for ry in range(2):
-      row = []
-      for rx in range(2):
-        taps = jnp.stack([jnp.stack([w[a, c] for c in _UP_TAPS[rx]])
-                          for a in _UP_TAPS[ry]])
-        window = x[:, ry:ry + h + 1, rx:rx + wd + 1]
-        if w.shape[2] <= TAP_MAX_CIN:
-          row.append(tap_conv(window, taps))
-        else:
-          row.append(_matmul(_patches(window, 2, 2), taps.reshape(-1, cout)))
-      phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
-    y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
-    return y.reshape(b, 2 * h, 2 * wd, cout)
-  # col2im, for few output channels (the generator's head); see _up_few.
-  return _up_few(x, w)
+  if cout * COL2IM_RATIO <= w.shape[2]:
+    return _up_col2im(x, w)
+  # im2col: per output phase, the 2x2 taps of the padded input times the
+  # phase's kernel taps, by tap_conv or by patches (4 * Cin) and one matmul.
+  phases = []
+  for ry in range(2):
+    row = []
+    for rx in range(2):
+      taps = jnp.stack([jnp.stack([w[a, c] for c in _UP_TAPS[rx]])
+                        for a in _UP_TAPS[ry]])
+      window = x[:, ry:ry + h + 1, rx:rx + wd + 1]
+      if w.shape[2] <= TAP_MAX_CIN:
+        row.append(tap_conv(window, taps))
+      else:
+        row.append(_matmul(_patches(window, 2, 2), taps.reshape(-1, cout)))
+    phases.append(jnp.stack(row, axis=3))  # (B, h, w, 2[rx], C)
+  y = jnp.stack(phases, axis=2)  # (B, h, 2[ry], w, 2[rx], C)
+  return y.reshape(b, 2 * h, 2 * wd, cout)
 
 
 def _up_lax(x, w):
@@ -181,26 +203,16 @@ def _up_lax(x, w):
       dimension_numbers=('NHWC', 'HWIO', 'NHWC'))[:, :2 * h, :2 * wd]
 
 
-@jax.custom_vjp
-def _up_few(x, w):
-  """conv_up of an already padded input with few output channels (the
-  generator's head), by col2im: every input pixel's contribution to all 16
-  taps in one matmul (Cin -> 16 * Cout, far smaller than 16 * Cin of
-  patches), then each output phase adds four shifted slices. The cylinder
-  pad commutes with the per-pixel matmul, so it is applied to the product.
-
-  Its gradient is lax.conv's (_up_lax, the same linear map): the transpose
-  of the strided slices of a (.., 4, 4, Cout) tensor with Cout = 2 is slow
-  on XLA's CPU backend (measured on a 2-core EPYC at the study's scale:
-  the head's VJP took 296 ms by col2im, 33 ms so; benchmarks/step_phases.py),
-  while the forward pass, all that sampling needs, is faster by col2im (3
-  ms against 8)."""
+def _up_col2im(x, w):
+  """conv_up of an already padded input with few output channels, by
+  col2im: every input pixel's contribution to all 16 taps in one matmul
+  (Cin -> 16 * Cout, far smaller than 16 * Cin of patches), then each output
+  phase adds four shifted slices."""
   b, hp, wp, _ = x.shape
   h, wd = hp - 2, wp - 2
   cout = w.shape[3]
-  x = x[:, 1:-1, 1:-1]
   z = _matmul(x, w.transpose(2, 0, 1, 3).reshape(w.shape[2], 16 * cout))
-  z = cylinder_pad(z, 1, 1, 1, 1).reshape(b, hp, wp, 4, 4, cout)
+  z = z.reshape(b, hp, wp, 4, 4, cout)
   phases = []
   for ry in range(2):
     row = []
@@ -216,17 +228,151 @@ def _up_few(x, w):
   return y.reshape(b, 2 * h, 2 * wd, cout)
 
 
-def _up_few_fwd(x, w):
-  return _up_few(x, w), (x, w)
+def _up_col2im_dw(x, ct):
+  """Dw of conv_up (the transpose in the kernel) for few output channels:
+  the cotangent of col2im's product, (B, H+2, W+2, 16 * Cout), is each output
+  phase's cotangent placed at its tap's offset, and Dw is one matmul of the
+  padded input with it. XLA's own kernel gradient of this layer, by either
+  form, contracts 2 output channels over every pixel at a few GFLOP/s."""
+  b, hp, wp, cin = x.shape
+  h, wd = hp - 2, wp - 2
+  cout = ct.shape[-1]
+  ct = ct.reshape(b, h, 2, wd, 2, cout)
+  parts = []
+  for ky in range(4):
+    ry, dy = _UP_PHASE[ky]
+    for kx in range(4):
+      rx, dx = _UP_PHASE[kx]
+      u, v = ry + dy, rx + dx
+      parts.append(jnp.pad(ct[:, :, ry, :, rx], ((0, 0), (u, 2 - u), (v, 2 - v), (0, 0))))
+  dz = jnp.stack(parts, axis=3).reshape(-1, 16 * cout)
+  dw = lax.dot_general(x.reshape(-1, cin), dz, (((0,), (0,)), ((), ())))
+  return dw.reshape(cin, 4, 4, cout).transpose(1, 2, 0, 3)
 
 
-def _up_few_bwd(residuals, cotangent):
-  # conv_up is linear in x and in w: under jit the forward pass that vjp
-  # traces is unused and removed.
-  return jax.vjp(_up_lax, *residuals)[1](cotangent)
+# Kernel row (or column) k -> (output phase r, tap d) with _UP_TAPS[r][d] == k.
+_UP_PHASE = {k: (r, d) for r in range(2) for d, k in enumerate(_UP_TAPS[r])}
 
 
-_up_few.defvjp(_up_few_fwd, _up_few_bwd)
+# Which form computes each linear map of a 'matmul' layer: by the per-layer
+# timings of each map in each form on a 2-core EPYC, at the CPU study's and
+# the paper's sizes (python benchmarks/conv_forms.py,
+# benchmarks/results/conv_forms_cpu.json, medians of 3 rounds):
+#  * down-convs: F and Dx by lax.conv while the layer's batch * Cin * Cout *
+#    Ho * Wo <= DOWN_SMALL_MAX (the study's D: F up to 1.5x faster; the
+#    paper's layers, above it, up to 2.3x slower), by patches above. Alone,
+#    the patches' Dx was as fast or faster at the study's size, but within
+#    D's loss gradient and R1 lax.conv's took 0.9x as long (conv_forms.py
+#    --graphs times whole gradients under variants of this plan). Dw by
+#    lax.conv while Cin <= DOWN_DW_LAX_MAX_CIN (1.4-2.4x faster), patches
+#    above.
+#  * up-convs: F by im2col, except the heads (few outputs) by col2im up to
+#    UP_HEAD_COL2IM_MAX_CIN input channels, lax.conv above (2.7x faster at
+#    the paper's 64); Dx by lax.conv, a forward strided conv of the
+#    cotangent, while Cin <= UP_DX_LAX_MAX_CIN (up to 2x, 26x for a head),
+#    the matmuls' transpose above (1.6x faster at 512); Dw by the matmuls'
+#    transpose (lax.conv's took 20x as long), for a head by _up_col2im_dw
+#    (9-14x faster than lax.conv's, 29-70x than autodiff's of col2im).
+DOWN_SMALL_MAX = 2**23
+DOWN_DW_LAX_MAX_CIN = 64
+UP_HEAD_COL2IM_MAX_CIN = 32
+UP_DX_LAX_MAX_CIN = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+  """How a 'matmul' layer computes its three linear maps: ``kind`` ('up' or
+  'down'), the padded input's and the kernel's shapes, and one form of each
+  map: 'matmul' (the matmul forward, or its transpose by autodiff), 'lax'
+  (lax.conv's), or 'col2im' (Dw of a head, _up_col2im_dw)."""
+  kind: str
+  x_shape: tuple
+  w_shape: tuple
+  f: str
+  dx: str
+  dw: str
+
+
+def plan(kind: str, x_shape, w_shape) -> Plan:
+  """The forms of a layer's F, Dx and Dw (see the table above)."""
+  x_shape, w_shape = tuple(x_shape), tuple(w_shape)
+  cin, cout = w_shape[2], w_shape[3]
+  if kind == 'down':
+    b, ho, wo = x_shape[0], (x_shape[1] - 2) // 2, (x_shape[2] - 2) // 2
+    small = b * cin * cout * ho * wo <= DOWN_SMALL_MAX
+    dw = 'lax' if cin <= DOWN_DW_LAX_MAX_CIN else 'matmul'
+    return Plan(kind, x_shape, w_shape, *(['lax'] * 2 if small else ['matmul'] * 2), dw)
+  head = cout * COL2IM_RATIO <= cin
+  f = 'lax' if head and cin > UP_HEAD_COL2IM_MAX_CIN else 'matmul'
+  dx = 'lax' if cin <= UP_DX_LAX_MAX_CIN else 'matmul'
+  return Plan(kind, x_shape, w_shape, f, dx, 'col2im' if head else 'matmul')
+
+
+def _forward(kind: str, form: str):
+  return {('down', 'matmul'): _down_matmul, ('down', 'lax'): _down_lax,
+          ('up', 'matmul'): _up_matmul, ('up', 'lax'): _up_lax}[kind, form]
+
+
+def _apply_f(p: Plan, x, w):
+  return _forward(p.kind, p.f)(x, w)
+
+
+def _varying_axes(a) -> frozenset:
+  t = jax.typeof(a)
+  vma = getattr(t, 'vma', None)  # its name in later JAX versions
+  if vma is None:
+    vma = getattr(getattr(t, 'manual_axis_type', None), 'varying', frozenset())
+  return vma
+
+
+def _zeros(shape, *like):
+  """Zeros at which to take a linear map's VJP, varying over the same
+  shard_map axes as ``like``: a primal that did not vary would have its
+  cotangent summed over the devices."""
+  z = jnp.zeros(shape, like[0].dtype)
+  axes = set().union(*(_varying_axes(a) for a in like))
+  return lax.pcast(z, tuple(sorted(axes)), to='varying') if axes else z
+
+
+def _apply_dx(p: Plan, ct, w):
+  f = _forward(p.kind, p.dx)
+  # F is linear in x: jit removes the forward pass on zeros that vjp traces.
+  return jax.vjp(lambda x: f(x, w), _zeros(p.x_shape, ct, w))[1](ct)[0]
+
+
+def _apply_dw(p: Plan, x, ct):
+  if p.dw == 'col2im':
+    return _up_col2im_dw(x, ct)
+  f = _forward(p.kind, p.dw)
+  return jax.vjp(lambda w: f(x, w), _zeros(p.w_shape, x, ct))[1](ct)[0]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _conv(p: Plan, x, w):
+  """F(x, w) of a padded input; its VJP is (Dx(ct, w), Dw(x, ct))."""
+  return _apply_f(p, x, w)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _conv_dx(p: Plan, ct, w):
+  """Dx(ct, w), the transpose of F in x; its VJP in (ct, w) for a cotangent
+  g shaped like x: (F(g, w), Dw(g, ct))."""
+  return _apply_dx(p, ct, w)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _conv_dw(p: Plan, x, ct):
+  """Dw(x, ct), the transpose of F in w; its VJP in (x, ct) for a cotangent
+  v shaped like w: (Dx(ct, v), F(x, v))."""
+  return _apply_dw(p, x, ct)
+
+
+_conv.defvjp(lambda p, x, w: (_conv(p, x, w), (x, w)),
+             lambda p, r, ct: (_conv_dx(p, ct, r[1]), _conv_dw(p, r[0], ct)))
+_conv_dx.defvjp(lambda p, ct, w: (_conv_dx(p, ct, w), (ct, w)),
+                lambda p, r, g: (_conv(p, g, r[1]), _conv_dw(p, g, r[0])))
+_conv_dw.defvjp(lambda p, x, ct: (_conv_dw(p, x, ct), (x, ct)),
+                lambda p, r, v: (_conv_dx(p, r[1], v), _conv(p, r[0], v)))
 
 
 def blur_vh(x):
