@@ -2,6 +2,7 @@
 
     python benchmarks/train_step.py [--scales study,paper] [--impls matmul]
         [--variants authors] [--invert 1,32] [--authors-dir PATH [--authors-amp]]
+        [--rounds N]
 
 For each scale (``paper``: latent 512, channels 64..512, batch 32; ``study``:
 the CPU study's latent 128, channels 16..128, batch 16; both 64x256), each
@@ -16,7 +17,9 @@ and ``fan_in_symmetric`` (the defaults before they followed the authors).
 With ``--authors-dir`` (a checkout of kazuto1011/dusty-gan, never part of
 this repository, and torch installed), the authors' step and inversion run
 right after ours in the same run (benchmarks/authors_step.py, in a
-subprocess), and the ratios ours / theirs are printed. Results go to
+subprocess), and the ratios ours / theirs are printed; ``--rounds N`` times
+ours then theirs N times per scale and prints each round's ratio and the
+median of them, which cancels the machine's drift between rounds. Results go to
 benchmarks/results/train_step.json (``--out``). Compare figures from one
 run only: shared machines are noisy.
 """
@@ -24,6 +27,7 @@ run only: shared machines are noisy.
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -136,6 +140,8 @@ def main():
   p.add_argument('--impls', default='', help="'' = the backend's default; or matmul,xla")
   p.add_argument('--variants', default='authors')
   p.add_argument('--invert', default='', help='inversion batch sizes, e.g. 1,32')
+  p.add_argument('--rounds', type=int, default=1,
+                 help='times ours then theirs, per scale; the ratio is per round')
   p.add_argument('--authors-dir', default='')
   p.add_argument('--authors-python', default=sys.executable)
   p.add_argument('--authors-device', default='cuda' if jax.default_backend() == 'gpu'
@@ -152,33 +158,46 @@ def main():
   rows, authors, ratios = [], {}, []
   for scale in a.scales.split(','):
     batch = SCALES[scale]['batch_size']
-    print(f'== {a.model} {scale} scale, {sensor.height}x{sensor.width}, batch {batch}',
-          flush=True)
-    for impl in a.impls.split(','):
-      for variant in a.variants.split(','):
-        res = {}
-        for r1 in (True, False):
-          t, flops = time_step(make_config(scale, impl, r1, a.model, variant), sensor,
-                               a.repeats)
-          res[r1] = t.median
-          rows.append(dict(scale=scale, impl=impl or 'default', variant=variant, r1=r1,
-                           batch=batch, median_s=t.median, times=t.times,
-                           compile_s=t.warmup[0], images_per_s=batch / t.median,
-                           flops=flops, peak_fraction=flops / t.median / peak))
-          print(f'  ours {impl or "default":7s} {variant:16s} R1={"on " if r1 else "off"}: '
-                f'{t.median:7.4f} s/step (min {min(t.times):.4f}), '
-                f'{batch / t.median:7.1f} img/s, {flops / 1e9:.1f} GFLOP, '
-                f'{100 * flops / t.median / peak:.1f}% of peak, compile {t.warmup[0]:.0f} s',
-                flush=True)
-        lazy = (res[True] + (LAZY_EVERY - 1) * res[False]) / LAZY_EVERY
-        print(f'  ours {impl or "default":7s} {variant:16s} lazy R1 every {LAZY_EVERY}: '
-              f'{lazy:7.4f} s/step average')
+    ours_r, theirs_r = [], []
+    for rnd in range(a.rounds):
+      print(f'== {a.model} {scale} scale, {sensor.height}x{sensor.width}, batch {batch}'
+            + (f', round {rnd + 1} of {a.rounds}' if a.rounds > 1 else ''), flush=True)
+      for impl in a.impls.split(','):
+        for variant in a.variants.split(','):
+          res = {}
+          for r1 in (True, False):
+            t, flops = time_step(make_config(scale, impl, r1, a.model, variant), sensor,
+                                 a.repeats)
+            res[r1] = t.median
+            rows.append(dict(scale=scale, round=rnd, impl=impl or 'default', variant=variant,
+                             r1=r1, batch=batch, median_s=t.median, times=t.times,
+                             compile_s=t.warmup[0], images_per_s=batch / t.median,
+                             flops=flops, peak_fraction=flops / t.median / peak))
+            print(f'  ours {impl or "default":7s} {variant:16s} R1={"on " if r1 else "off"}: '
+                  f'{t.median:7.4f} s/step (min {min(t.times):.4f}), '
+                  f'{batch / t.median:7.1f} img/s, {flops / 1e9:.1f} GFLOP, '
+                  f'{100 * flops / t.median / peak:.1f}% of peak, compile {t.warmup[0]:.0f} s',
+                  flush=True)
+          lazy = (res[True] + (LAZY_EVERY - 1) * res[False]) / LAZY_EVERY
+          print(f'  ours {impl or "default":7s} {variant:16s} lazy R1 every {LAZY_EVERY}: '
+                f'{lazy:7.4f} s/step average')
+      if a.authors_dir:
+        last = rnd == a.rounds - 1
+        theirs = run_authors(a, scale, a.invert if scale == 'paper' and last else '')
+        authors.setdefault(scale, {}).update(theirs)
+        ours_r.append(min(r['median_s'] for r in rows if r['scale'] == scale and r['r1']
+                          and r['variant'] == 'authors' and r['round'] == rnd))
+        theirs_r.append(theirs['train_step_s'])
+        if a.rounds > 1:
+          print(f'  round {rnd + 1}: ours {ours_r[-1]:.4f} s, theirs {theirs_r[-1]:.4f} s, '
+                f'ours / theirs {ours_r[-1] / theirs_r[-1]:.3f}', flush=True)
     if a.authors_dir:
-      authors[scale] = run_authors(a, scale, a.invert if scale == 'paper' else '')
-      ours = min(r['median_s'] for r in rows if r['scale'] == scale and r['r1']
-                 and r['variant'] == 'authors')
-      ratios.append(dict(what=f'train step, {scale} scale, R1 every step', ours=ours,
-                         theirs=authors[scale]['train_step_s']))
+      ratios.append(dict(what=f'train step, {scale} scale, R1 every step',
+                         ours=statistics.median(ours_r), theirs=statistics.median(theirs_r),
+                         rounds=[dict(ours=o, theirs=t, ratio=o / t)
+                                 for o, t in zip(ours_r, theirs_r)],
+                         median_round_ratio=statistics.median(
+                             o / t for o, t in zip(ours_r, theirs_r))))
   inv = time_inversion([int(b) for b in a.invert.split(',') if b], a.repeats) \
       if a.invert else {}
   for b, t in inv.items():
@@ -188,7 +207,9 @@ def main():
   for r in ratios:
     r['ours_over_theirs'] = r['ours'] / r['theirs']
     print(f'{r["what"]}: ours {r["ours"]:.4f} s, theirs {r["theirs"]:.4f} s: ours / theirs '
-          f'{r["ours_over_theirs"]:.3f} (speed-up x{1 / r["ours_over_theirs"]:.2f})')
+          f'{r["ours_over_theirs"]:.3f} (speed-up x{1 / r["ours_over_theirs"]:.2f})'
+          + (f'; median of the per-round ratios {r["median_round_ratio"]:.3f}'
+             if len(r.get('rounds', [])) > 1 else ''))
   common.write_json(a.out, dict(model=a.model, shape=sensor.shape,
                                 device=f'{info["device_count"]} x {info["device_kind"]}',
                                 matmul_peak_flops=peak, rows=rows,

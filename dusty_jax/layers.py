@@ -268,15 +268,16 @@ _UP_PHASE = {k: (r, d) for r in range(2) for d, k in enumerate(_UP_TAPS[r])}
 #    above.
 #  * up-convs: F by im2col, except the heads (few outputs) by col2im up to
 #    UP_HEAD_COL2IM_MAX_CIN input channels, lax.conv above (2.7x faster at
-#    the paper's 64); Dx by lax.conv, a forward strided conv of the
-#    cotangent, while Cin <= UP_DX_LAX_MAX_CIN (up to 2x, 26x for a head),
-#    the matmuls' transpose above (1.6x faster at 512); Dw by the matmuls'
+#    the paper's 64); Dx by the matmuls' transpose, for a head by lax.conv
+#    (a forward strided conv of the cotangent: 26x faster). Alone, lax.conv's
+#    Dx was also up to 2x faster for the other up-convs of at most 256
+#    inputs, but inside inversion's gradient (vmapped, in a loop) it made
+#    100 iterations 1.9x (paper) to 3.5x (study) slower. Dw by the matmuls'
 #    transpose (lax.conv's took 20x as long), for a head by _up_col2im_dw
 #    (9-14x faster than lax.conv's, 29-70x than autodiff's of col2im).
 DOWN_SMALL_MAX = 2**23
 DOWN_DW_LAX_MAX_CIN = 64
 UP_HEAD_COL2IM_MAX_CIN = 32
-UP_DX_LAX_MAX_CIN = 256
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,8 +305,9 @@ def plan(kind: str, x_shape, w_shape) -> Plan:
     return Plan(kind, x_shape, w_shape, *(['lax'] * 2 if small else ['matmul'] * 2), dw)
   head = cout * COL2IM_RATIO <= cin
   f = 'lax' if head and cin > UP_HEAD_COL2IM_MAX_CIN else 'matmul'
-  dx = 'lax' if cin <= UP_DX_LAX_MAX_CIN else 'matmul'
-  return Plan(kind, x_shape, w_shape, f, dx, 'col2im' if head else 'matmul')
+  if head:
+    return Plan(kind, x_shape, w_shape, f, 'lax', 'col2im')
+  return Plan(kind, x_shape, w_shape, f, 'matmul', 'matmul')
 
 
 def _forward(kind: str, form: str):
