@@ -256,28 +256,27 @@ _UP_PHASE = {k: (r, d) for r in range(2) for d, k in enumerate(_UP_TAPS[r])}
 
 # Which form computes each linear map of a 'matmul' layer: by the per-layer
 # timings of each map in each form on a 2-core EPYC, at the CPU study's and
-# the paper's sizes (python benchmarks/conv_forms.py,
+# the paper's sizes, and by whole gradients under variants of this plan
+# (python benchmarks/conv_forms.py --graphs,
 # benchmarks/results/conv_forms_cpu.json, medians of 3 rounds):
 #  * down-convs: F and Dx by lax.conv while the layer's batch * Cin * Cout *
-#    Ho * Wo <= DOWN_SMALL_MAX (the study's D: F up to 1.5x faster; the
-#    paper's layers, above it, up to 2.3x slower), by patches above. Alone,
-#    the patches' Dx was as fast or faster at the study's size, but within
-#    D's loss gradient and R1 lax.conv's took 0.9x as long (conv_forms.py
-#    --graphs times whole gradients under variants of this plan). Dw by
-#    lax.conv while Cin <= DOWN_DW_LAX_MAX_CIN (1.4-2.4x faster), patches
-#    above.
-#  * up-convs: F by im2col, except the heads (few outputs) by col2im up to
-#    UP_HEAD_COL2IM_MAX_CIN input channels, lax.conv above (2.7x faster at
-#    the paper's 64); Dx by the matmuls' transpose, for a head by lax.conv
-#    (a forward strided conv of the cotangent: 26x faster). Alone, lax.conv's
-#    Dx was also up to 2x faster for the other up-convs of at most 256
-#    inputs, but inside inversion's gradient (vmapped, in a loop) it made
-#    100 iterations 1.9x (paper) to 3.5x (study) slower. Dw by the matmuls'
-#    transpose (lax.conv's took 20x as long), for a head by _up_col2im_dw
-#    (9-14x faster than lax.conv's, 29-70x than autodiff's of col2im).
+#    Ho * Wo <= DOWN_SMALL_MAX (the study's D), by patches above (the
+#    paper's, where lax.conv's F was up to 1.8x slower). Alone, the study
+#    layers' F was up to 1.4x faster by lax.conv and their Dx as fast or
+#    faster by patches, but with the patches' Dx D's loss gradient took
+#    1.17x as long and R1 1.4x. Dw by lax.conv while Cin <=
+#    DOWN_DW_LAX_MAX_CIN (1.4-3.9x faster), patches above.
+#  * up-convs: F by im2col, a head (few outputs) by col2im (never slower
+#    than lax.conv, 4x faster for the study's head); Dx by the matmuls'
+#    transpose, for a head by lax.conv (a forward strided conv of the
+#    cotangent, 2-4.6x faster). Alone, lax.conv's Dx was also up to 2x
+#    faster for the other up-convs of <= 256 inputs, but inside inversion's
+#    gradient (vmapped, in a loop) it made inversion 1.9x (paper, batch 8)
+#    to 3.5x (study, batch 32) slower. Dw by the matmuls' transpose
+#    (lax.conv's took 20x as long), for a head by _up_col2im_dw (7-14x
+#    faster than lax.conv's, 2.6-4.6x than autodiff's of col2im).
 DOWN_SMALL_MAX = 2**23
 DOWN_DW_LAX_MAX_CIN = 64
-UP_HEAD_COL2IM_MAX_CIN = 32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,10 +303,9 @@ def plan(kind: str, x_shape, w_shape) -> Plan:
     dw = 'lax' if cin <= DOWN_DW_LAX_MAX_CIN else 'matmul'
     return Plan(kind, x_shape, w_shape, *(['lax'] * 2 if small else ['matmul'] * 2), dw)
   head = cout * COL2IM_RATIO <= cin
-  f = 'lax' if head and cin > UP_HEAD_COL2IM_MAX_CIN else 'matmul'
   if head:
-    return Plan(kind, x_shape, w_shape, f, 'lax', 'col2im')
-  return Plan(kind, x_shape, w_shape, f, 'matmul', 'matmul')
+    return Plan(kind, x_shape, w_shape, 'matmul', 'lax', 'col2im')
+  return Plan(kind, x_shape, w_shape, 'matmul', 'matmul', 'matmul')
 
 
 def _forward(kind: str, form: str):

@@ -141,11 +141,10 @@ def test_plan_follows_its_table():
   assert (study_d1.f, study_d1.dx, study_d1.dw) == ('lax', 'lax', 'lax')
   assert (paper_d1.f, paper_d1.dx, paper_d1.dw) == ('matmul', 'matmul', 'lax')
   assert layers.plan('down', (32, 18, 66, 128), (4, 4, 128, 256)).dw == 'matmul'
-  # Heads: Dw by col2im; F by col2im at 16 inputs, lax.conv at 64.
-  head16 = layers.plan('up', (16, 34, 130, 16), (4, 4, 16, 2))
-  head64 = layers.plan('up', (32, 34, 130, 64), (4, 4, 64, 2))
-  assert (head16.f, head16.dx, head16.dw) == ('matmul', 'lax', 'col2im')
-  assert head64.f == 'lax'
+  # Heads: F by col2im, Dx by lax.conv, Dw by col2im; other up-convs matmuls.
+  for cin in (16, 64):
+    head = layers.plan('up', (16, 34, 130, cin), (4, 4, cin, 2))
+    assert (head.f, head.dx, head.dw) == ('matmul', 'lax', 'col2im')
   assert layers.plan('up', (16, 18, 66, 32), (4, 4, 32, 16)).dx == 'matmul'
 
 
