@@ -98,21 +98,35 @@ def matmul_peak(repeats=5) -> float:
   return 2 * n ** 3 / t.median
 
 
-def time_inversion(batches, repeats):
-  """Seconds of an INVERT_ITERS-iteration inversion, paper-size DUSty-I."""
+def iteration_flops(params, tgt):
+  """FLOPs of one search iteration's gradient for the batch ``tgt`` (XLA's
+  cost analysis of the objective's per-scan gradient, as invert computes it)."""
+  apply = params.module(None).apply
+  one = lambda z, t, m: inversion.objective(
+      params.variant.decode_inv_depth(apply(params.variables, z[None]))[0], t, m)
+  f = jax.jit(jax.vmap(jax.grad(one)))
+  z = jnp.zeros((len(tgt), params.latent_dim), jnp.float32)
+  cost = f.lower(z, tgt, inversion.target_mask(tgt)).compile().cost_analysis()
+  return (cost[0] if isinstance(cost, list) else cost)['flops']
+
+
+def time_inversion(batches, repeats, peak):
+  """Seconds of an INVERT_ITERS-iteration inversion, paper-size DUSty-I, and
+  its FLOPs (``{batch: seconds}``, ``{batch: FLOPs}``)."""
   c = make_config('paper', '', True)
   sensor = get_sensor('kitti')
   setup = trainer.make_setup(c, sensor)
   state = trainer.init_state(setup, jax.random.key(0))
   params = trainer.generator_params(setup, state.g_params, sensor.nominal_angles())
-  out = {}
+  out, flops = {}, {}
   for b in batches:
     tgt = sampling.sample(params, jax.random.key(7), b)['scan']
     t = common.timed(lambda: inversion.invert(params, tgt, num_steps=INVERT_ITERS), repeats)
-    out[b] = t.median
+    out[b], flops[b] = t.median, INVERT_ITERS * iteration_flops(params, tgt)
     print(f'  ours: inversion, {INVERT_ITERS} iterations, batch {b}: {t.median:.3f} s '
-          f'({1e3 * t.median / INVERT_ITERS / b:.2f} ms per scan-iteration)', flush=True)
-  return out
+          f'({1e3 * t.median / INVERT_ITERS / b:.2f} ms per scan-iteration), '
+          f'{flops[b] / 1e9:.1f} GFLOP, {flops[b] / t.median / peak:.1%} of peak', flush=True)
+  return out, flops
 
 
 def run_authors(a, scale, invert):
@@ -198,8 +212,8 @@ def main():
                                  for o, t in zip(ours_r, theirs_r)],
                          median_round_ratio=statistics.median(
                              o / t for o, t in zip(ours_r, theirs_r))))
-  inv = time_inversion([int(b) for b in a.invert.split(',') if b], a.repeats) \
-      if a.invert else {}
+  inv, inv_flops = time_inversion([int(b) for b in a.invert.split(',') if b], a.repeats,
+                                  peak) if a.invert else ({}, {})
   for b, t in inv.items():
     if 'paper' in authors and f'invert_{b}_s' in authors['paper']:
       ratios.append(dict(what=f'inversion, batch {b}, {INVERT_ITERS} iterations',
@@ -214,6 +228,7 @@ def main():
                                 device=f'{info["device_count"]} x {info["device_kind"]}',
                                 matmul_peak_flops=peak, rows=rows,
                                 inversion_s={str(b): t for b, t in inv.items()},
+                                inversion_flops={str(b): f for b, f in inv_flops.items()},
                                 authors=authors, ratios=ratios))
 
 

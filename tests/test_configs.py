@@ -3,18 +3,33 @@ built from a valid config (Setup, DropOptions) reads its fields as they are,
 so validate refuses a config that lacks one, naming it, instead of letting a
 default stand in for it."""
 
+import os
+
 import ml_collections
 import pytest
 
-from dusty_jax import configs
+from dusty_jax import cli, configs
 from train_helpers import tiny_config
+
+
+EXPERIMENTS = os.path.join(os.path.dirname(__file__), '..', 'experiments')
 
 
 def test_every_experiment_config_is_complete():
   configs.validate(tiny_config())
   for name in ('baseline', 'dusty1', 'dusty2_drops', 'dusty1_rangedrops', 'dusty1_headdrops',
-               'dusty1_detdrops'):
+               'dusty1_detdrops', 'dusty2_detdrops'):
     configs.validate(configs.study(name))
+
+
+@pytest.mark.parametrize('name', sorted(f[:-3] for f in os.listdir(EXPERIMENTS)
+                                        if f.endswith('.py')))
+def test_every_experiment_file_loads_a_valid_config(name):
+  c = cli._load_config(os.path.join(EXPERIMENTS, name + '.py'))
+  assert c is not None, f'experiments/{name}.py does not load'
+  configs.validate(c)
+  if name.startswith('study_'):  # a study file is its study model, at the CPU scale
+    assert c.to_dict() == configs.study(name[len('study_'):]).to_dict()
 
 
 @pytest.mark.parametrize('path', ['drop_const', 'tolerance', 'ema_rampup', 'drops',

@@ -1,0 +1,79 @@
+"""The drop rate and D's logits over training of the study-length CPU runs.
+
+    python benchmarks/drop_curves.py [--out benchmarks/results/drops_full_length.png]
+
+Reads the training logs committed beside each study report
+(``benchmarks/results/*/*_metrics.jsonl``: a run's ``metrics.jsonl``, copied
+as ``MODEL_cpu_metrics.jsonl``; ``authors_code_metrics.jsonl`` is the authors'
+PyTorch code run by ``authors_step.py --train-steps``) and plots every one of
+them against the real scans' drop rate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+
+import common
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESULTS = os.path.join(HERE, 'results')
+SUFFIX = '_metrics.jsonl'
+LABELS = {'authors_code': "the authors' PyTorch code, their defaults"}
+
+
+def load_runs(results: str = RESULTS) -> dict:
+  """{run name: {key: [values by step]}} of every training log under ``results``."""
+  runs = {}
+  for path in sorted(glob.glob(os.path.join(results, '*', '*' + SUFFIX))):
+    name = os.path.basename(path)[:-len(SUFFIX)].removesuffix('_cpu')
+    with open(path) as f:
+      recs = [json.loads(line) for line in f if line.strip()]
+    recs = [r for r in recs if 'drop_rate' in r]
+    runs[name] = {k: [r.get(k) for r in recs]
+                  for k in ('step', 'drop_rate', 'real_drop_rate', 'd_real', 'd_fake')}
+  return runs
+
+
+def plot(runs: dict, out: str):
+  plt = common.pyplot()
+  fig, (ax_rate, ax_logit) = plt.subplots(1, 2, figsize=(13, 4.2))
+  real = []
+  for i, (name, r) in enumerate(runs.items()):
+    colour = f'C{i}'
+    style = dict(color=colour, linewidth=1.2, alpha=0.85)
+    label = LABELS.get(name, name)
+    ax_rate.plot(r['step'], r['drop_rate'], label=label, **style)
+    ax_logit.plot(r['step'], r['d_real'], **style)
+    ax_logit.plot(r['step'], r['d_fake'], linestyle='--', **style)
+    real += [v for v in r['real_drop_rate'] if v is not None]
+  ax_rate.axhline(sum(real) / len(real), color='k', linestyle=':', label='real scans')
+  ax_rate.set(yscale='log', xlabel='training step (batch 16)',
+              ylabel='drop rate of generated scans (G, training batch)')
+  ax_rate.legend(fontsize=8)
+  ax_logit.set(xlabel='training step (batch 16)', ylabel='D logits: real (solid), fake (dashed)')
+  fig.suptitle('Study-length CPU runs (latent 128, channels 16..128): drop rate over training')
+  fig.tight_layout()
+  fig.savefig(out, dpi=110)
+  print(f'wrote {out}')
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument('--results', default=RESULTS)
+  p.add_argument('--out', default=os.path.join(RESULTS, 'drops_full_length.png'))
+  a = p.parse_args(argv)
+  runs = load_runs(a.results)
+  if not runs:
+    raise SystemExit(f'{a.results}: no */*{SUFFIX} training logs to plot')
+  for name, r in runs.items():
+    after = [v for s, v in zip(r['step'], r['drop_rate']) if s > 500]
+    print(f'{name:24s} steps {r["step"][-1]:5d}  drop rate end {r["drop_rate"][-1]:.4f}'
+          + (f', min after step 500 {min(after):.4f}' if after else ''))
+  plot(runs, a.out)
+
+
+if __name__ == '__main__':
+  main()
