@@ -341,7 +341,11 @@ def picture_restoration(workdir, models, path):
                    writers.inv_depth_tile(r['inv_depth'][i], alpha=-2.0),
                    writers.prob_tile(r['measurability'][i]),
                    writers.inv_depth_tile(comp[i])])
+  if not rows:  # every model's restoration came from --reuse: nothing restored here
+    print(f'no restorations computed in {workdir}: {os.path.basename(path)} not drawn')
+    return None
   writers.save_grid(path, rows, scale=1)
+  return path
 
 
 def picture_kitti(params, path):
@@ -386,7 +390,7 @@ def md_table(header, rows):
 
 
 def report(results, trade_result, train_seconds, a, machine, kitti_file,
-           kitti_model='dusty1'):
+           kitti_model='dusty1', restoration_file='study_restoration.png'):
   f3 = lambda v: f'{v:.3f}'
   d_rows = []
   for model, r in results.items():
@@ -471,11 +475,11 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file,
       md_table(['model', 'corruption', 'CD x1e4', 'AbsRel', 'RMSE m', 'd<1.25 %',
                 'AbsRel vs complete', 'MAE m vs complete', 'coverage %'], r_rows),
       '',
-      '![restoration](study_restoration.png)',
-      '',
-      'Rows: per model two test scans, drop 90%. Columns: clean scan, corrupted'
-      ' input, x_tilde, measurability, complete depth.',
-      '',
+      *([f'![restoration]({os.path.basename(restoration_file)})',
+         '',
+         'Rows: per model two test scans, drop 90%. Columns: clean scan, corrupted'
+         ' input, x_tilde, measurability, complete depth.',
+         ''] if restoration_file else []),
       f'## Inversion: iterations against error (DUSty-I, {trade_result["num"]} scans)',
       '',
       md_table(['iterations', 'compl. AbsRel', 'compl. MAE m', 'fit AbsRel', 's per scan'],
@@ -552,13 +556,15 @@ def main(argv=None):
   picture_samples(params_by_model, os.path.join(a.out, 'study_samples.png'))
   picture_reliability(results, params_by_model, os.path.join(a.out, 'study_reliability.png'))
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
-  picture_restoration(a.workdir, params_by_model, os.path.join(a.out, 'study_restoration.png'))
+  restoration_file = picture_restoration(a.workdir, params_by_model,
+                                         os.path.join(a.out, 'study_restoration.png'))
   variant = next((m for m in ('dusty1_detdrops', 'dusty1_headdrops', 'dusty1_rangedrops',
                               'dusty1_drops')
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
-  text = report(results, trade_result, train_seconds, a, machine, kitti_file, variant)
+  text = report(results, trade_result, train_seconds, a, machine, kitti_file, variant,
+                restoration_file)
   with open(os.path.join(a.out, 'study.md'), 'w') as f:
     f.write(text)
   common.write_json(os.path.join(a.out, 'study.json'),
