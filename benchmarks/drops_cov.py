@@ -2,8 +2,10 @@
 drops, and the same samples with every point kept.
 
     python benchmarks/drops_cov.py [--models sim-dusty1,sim-dusty1-authors] [--seeds 3]
+    python benchmarks/drops_cov.py --models RUN_DIR,... [--no-keep-all]
 
-Table II (the study's N, points and seeds) of each shipped generator twice:
+Table II (the study's N, points and seeds) of each generator (a shipped name
+or a training run's directory) twice:
 as it samples, and with its measurability forced to 1 (the pixel logit's bias
 set to +50 and its ring offsets to 0, so the Gumbel mask keeps every pixel),
 which leaves x_tilde, the scene, as it is. If the kept-all row scores as the
@@ -41,6 +43,8 @@ def main(argv=None):
   p.add_argument('--num', type=int, default=200)
   p.add_argument('--points', type=int, default=512)
   p.add_argument('--seeds', type=int, default=3)
+  p.add_argument('--no-keep-all', action='store_true',
+                 help='score the generators as they sample only')
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'drops_cov.json'))
   a = p.parse_args(argv)
   import dusty_jax
@@ -51,13 +55,17 @@ def main(argv=None):
   rows = {}
   data = None
   for name in [m for m in a.models.split(',') if m]:
-    params = dusty_jax.load_pretrained(name)
-    if not params.variant.has_measurability:
+    params = (dusty_jax.load_checkpoint(name)[0] if os.path.isdir(name)
+              else dusty_jax.load_pretrained(name))
+    if not params.variant.has_measurability and not a.no_keep_all:
       raise SystemExit(f'{name}: the {params.model} model has no measurability to force')
     if data is None:
       d = pipeline.dataset_dir(config, params.sensor, log=print)
       data = {s: np.asarray(arrays.load_split(d, s, params.sensor)) for s in ('test', 'train')}
-    for label, prm in ((name, params), (f'{name}, every point kept', keep_all(params))):
+    runs = [(name, params)]
+    if not a.no_keep_all:
+      runs.append((f'{name}, every point kept', keep_all(params)))
+    for label, prm in runs:
       rec = evaluation.synthesis(prm, data['test'], data['train'] if not rows else None,
                                  num=a.num, points=a.points, seeds=a.seeds, progress=True)
       for row, metrics in rec['rows'].items():
