@@ -3,7 +3,7 @@
     python benchmarks/drop_curves.py [--out benchmarks/results/drops_full_length.png]
 
 Reads the training logs committed beside each study report
-(``benchmarks/results/*/*_metrics.jsonl``: a run's ``metrics.jsonl``, copied
+(``benchmarks/results/**/*_metrics.jsonl``: a run's ``metrics.jsonl``, copied
 as ``MODEL_cpu_metrics.jsonl``; ``authors_code_metrics.jsonl`` is the authors'
 PyTorch code run by ``authors_step.py --train-steps``) and plots every one of
 them against the real scans' drop rate.
@@ -27,7 +27,7 @@ LABELS = {'authors_code': "the authors' PyTorch code, their defaults"}
 def load_runs(results: str = RESULTS) -> dict:
   """{run name: {key: [values by step]}} of every training log under ``results``."""
   runs = {}
-  for path in sorted(glob.glob(os.path.join(results, '*', '*' + SUFFIX))):
+  for path in sorted(glob.glob(os.path.join(results, '**', '*' + SUFFIX), recursive=True)):
     name = os.path.basename(path)[:-len(SUFFIX)].removesuffix('_cpu')
     with open(path) as f:
       recs = [json.loads(line) for line in f if line.strip()]
