@@ -67,7 +67,7 @@ def main(argv=None):
   a = p.parse_args(argv)
   runs = load_runs(a.results)
   if not runs:
-    raise SystemExit(f'{a.results}: no */*{SUFFIX} training logs to plot')
+    raise SystemExit(f'{a.results}: no **/*{SUFFIX} training logs to plot')
   for name, r in runs.items():
     after = [v for s, v in zip(r['step'], r['drop_rate']) if s > 500]
     print(f'{name:24s} steps {r["step"][-1]:5d}  drop rate end {r["drop_rate"][-1]:.4f}'

@@ -28,12 +28,10 @@ KEEP_ALL_LOGIT = 50.0
 
 def keep_all(params):
   """``params`` with a measurability of 1 everywhere (x_tilde unchanged)."""
-  import flax
-  v = flax.core.unfreeze(params.variables)
-  p = v['params']
-  p['head_bias'] = p['head_bias'].at[1].set(KEEP_ALL_LOGIT)
-  if 'ring_bias' in p:
-    p['ring_bias'] = p['ring_bias'] * 0.0
+  from dusty_jax import trainer
+  v = trainer.set_mask_bias(params.variables, KEEP_ALL_LOGIT)
+  if 'ring_bias' in v['params']:
+    v['params']['ring_bias'] = v['params']['ring_bias'] * 0.0
   return params.replace(variables=v)
 
 

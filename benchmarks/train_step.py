@@ -102,9 +102,8 @@ def iteration_flops(params, tgt):
   """FLOPs of one search iteration's gradient for the batch ``tgt`` (XLA's
   cost analysis of the objective's per-scan gradient, as invert computes it)."""
   apply = params.module(None).apply
-  one = lambda z, t, m: inversion.objective(
-      params.variant.decode_inv_depth(apply(params.variables, z[None]))[0], t, m)
-  f = jax.jit(jax.vmap(jax.grad(one)))
+  f = jax.jit(jax.vmap(jax.grad(
+      lambda z, t, m: inversion.scan_loss(params, apply, z, t, m))))
   z = jnp.zeros((len(tgt), params.latent_dim), jnp.float32)
   cost = f.lower(z, tgt, inversion.target_mask(tgt)).compile().cost_analysis()
   return (cost[0] if isinstance(cost, list) else cost)['flops']

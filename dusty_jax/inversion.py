@@ -93,15 +93,20 @@ def encoder_start(params, scans, masks, keys):
 STARTS = {'random': random_start, 'encoder': encoder_start}
 
 
+def scan_loss(params, apply, z, target, mask, loss=objective):
+  """What the search minimises for one scan: ``loss`` of the generator's
+  x_tilde at the latent ``z`` (d,) against ``target`` on ``mask`` (H, W);
+  ``apply`` is ``params.module(impl).apply``."""
+  raw = apply(params.variables, z[None])
+  return loss(params.variant.decode_inv_depth(raw)[0], target, mask)
+
+
 def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
   kn = jax.random.split(key)[1]
   tx = optax.adam(lr_schedule(max(num_steps, 1), lr))
   opt = tx.init(z)
   target = jnp.where(mask, target, 0.0)
-
-  def loss_fn(z):
-    raw = apply(params.variables, z[None])
-    return loss(params.variant.decode_inv_depth(raw)[0], target, mask)
+  loss_fn = lambda z: scan_loss(params, apply, z, target, mask, loss)
 
   def body(i, carry):
     z, opt = carry
