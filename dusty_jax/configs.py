@@ -90,6 +90,10 @@ def drop_defaults() -> ml_collections.ConfigDict:
                             # on its expected keep rate
   d.mask_detached = False   # no gradient of the mask reaches G's trunk: the
                             # measurability head works on its features, detached
+  d.depth_weight = 0.0    # G: + weight x mean over rings of (mean returned
+                          # inverse depth - real's)^2: anchors the range
+  d.dip_weight = 0.0      # G: + weight x mean depth of the dips among its
+                          # returns (pixels behind both ring neighbours)
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -156,7 +160,8 @@ def validate(c) -> None:
   def need_drop(ok, field, why):
     if not ok:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
-  for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight', 'rate_shrink'):
+  for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight', 'rate_shrink',
+            'depth_weight', 'dip_weight'):
     need_drop(d[f] >= 0, f, 'must be >= 0')
   need_drop(d.mask_dropout <= 1, 'mask_dropout', 'a probability: must be <= 1')
   need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')

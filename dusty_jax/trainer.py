@@ -88,6 +88,22 @@ class DropOptions:
     gradient of the mask (the GAN loss's straight-through one, the rate
     term's) reaches G's shared trunk: the trunk learns from x_tilde alone,
     the head's measurability kernel and biases from the mask.
+  * ``depth_weight`` mu: G's loss + mu * the mean over rings of the squared
+    gap between the mean returned value (normalised inverse depth) of the
+    generated and of the real scans in that ring (depth_penalty; the
+    global batch's tallies). Its gradient reaches x_tilde at the kept
+    pixels only; the keep-masks weigh, they are not differentiated. It
+    anchors the scene's range where a G that cannot place its drops where
+    D expects them would hide them instead, by moving surfaces farther
+    away, where a drop differs little from a return (README "Depth that
+    survives the drops").
+  * ``dip_weight`` nu: G's loss + nu * the mean depth of the dips among the
+    generated returns: each returned pixel with both ring neighbours
+    returned that lies farther than both by more than DIP (normalised
+    inverse depth), by how much (dip_penalty; the neighbours are not
+    differentiated, so a dip is filled, not its neighbours lowered).
+    Variants that keep their drops grow such dips, a checkerboard of far
+    pixels that looks like drops to D; real surfaces hardly ever have them.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -104,6 +120,8 @@ class DropOptions:
   rate_shrink: float = 0.0
   rate_head_only: bool = False
   mask_detached: bool = False
+  depth_weight: float = 0.0
+  dip_weight: float = 0.0
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -114,7 +132,8 @@ class DropOptions:
                rate_weight=float(d.rate_weight), rate_by=str(d.rate_by),
                rate_shrink=float(d.rate_shrink),
                rate_head_only=bool(d.rate_head_only),
-               mask_detached=bool(d.mask_detached))
+               mask_detached=bool(d.mask_detached),
+               depth_weight=float(d.depth_weight), dip_weight=float(d.dip_weight))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -321,6 +340,52 @@ def rate_penalty(drops: DropOptions, keep, real_keep, axis_name=None):
   return jnp.mean(jnp.square(gap))
 
 
+def ring_depth_gap(scan, real, axis_name=None):
+  """(H,) the mean returned value of each row of ``scan`` (B, H, W; a
+  return is > ALPHA) minus that of ``real``; 0 for a row without returns on
+  either side. With ``axis_name`` the tallies are the global batch's. The
+  masks are not differentiated: the gradient reaches the returned values."""
+  def row_mean(x):
+    keep = lax.stop_gradient((x > codec.ALPHA).astype(x.dtype))
+    n = _psum(keep.sum(axis=(0, 2)), axis_name)
+    return _psum((x * keep).sum(axis=(0, 2)), axis_name) / jnp.maximum(n, 1.0), n
+  fake_mean, n_fake = row_mean(scan)
+  real_mean, n_real = row_mean(lax.stop_gradient(real))
+  return jnp.where((n_fake > 0) & (n_real > 0), fake_mean - real_mean, 0.0)
+
+
+def depth_penalty(scan, real, axis_name=None):
+  """``depth_weight``'s term: the mean over rows of ring_depth_gap squared."""
+  return jnp.mean(jnp.square(ring_depth_gap(scan, real, axis_name)))
+
+
+DIP = 0.05  # normalised inverse depth: how far behind both ring neighbours a dip lies
+
+
+def dips(scan, dip: float = DIP):
+  """(depths, counted): per pixel of ``scan`` (B, H, W), how far it lies
+  behind both ring neighbours beyond ``dip`` (0 if not), and whether it and
+  both neighbours are returns (> ALPHA; the ring wraps around). The
+  neighbours and the masks are not differentiated."""
+  keep = lax.stop_gradient(scan > codec.ALPHA)
+  near = lax.stop_gradient(jnp.minimum(jnp.roll(scan, 1, -1), jnp.roll(scan, -1, -1)))
+  counted = keep & jnp.roll(keep, 1, -1) & jnp.roll(keep, -1, -1)
+  return jnp.where(counted, jax.nn.relu(near - scan - dip), 0.0), counted
+
+
+def _dip_share(scan, axis_name=None):
+  depth, counted = dips(scan)
+  return _psum((depth > 0).sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
+
+
+def dip_penalty(scan, axis_name=None):
+  """``dip_weight``'s term: the mean dip depth over the counted pixels (the
+  global batch's with ``axis_name``)."""
+  depth, counted = dips(scan)
+  n = _psum(counted.sum(), axis_name)
+  return _psum(depth.sum(), axis_name) / jnp.maximum(n, 1)
+
+
 # Metric depth edges (m) of the ``rate_by='ring_depth'`` cells.
 RATE_DEPTH_EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
 NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
@@ -458,7 +523,7 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
   ``key``: the augmentation keys, one per example. With point-drop options
   ``fake`` is the pair (scans, keep-masks) and ``real`` the real batch's
   (scans, keep-masks) pair (for ``rate_weight``); the returned loss is then the
-  adversarial loss alone, without the rate penalty. With ``rate_head_only``
+  adversarial loss alone, without the rate, depth or dip penalty. With ``rate_head_only``
   ``fake`` is (scans, keep-masks, keep probabilities of the detached head),
   and the rate term is taken on the third.
   """
@@ -467,15 +532,22 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
   def objective(scan):
     view = scan[:2] if isinstance(scan, tuple) else scan
     adv = losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, view)))
+    total = adv
+    if setup.drops.depth_weight > 0:
+      x, x_real = (view[0], real[0]) if isinstance(view, tuple) else (view, real)
+      total = total + setup.drops.depth_weight * depth_penalty(x, x_real, axis_name)
+    if setup.drops.dip_weight > 0:
+      x = view[0] if isinstance(view, tuple) else view
+      total = total + setup.drops.dip_weight * dip_penalty(x, axis_name)
     if setup.drops.rate_weight == 0:
-      return adv, adv
+      return total, adv
     keep = scan[2] if setup.drops.rate_head_only else scan[1]
     if setup.drops.rate_by == 'ring_depth':
       penalty = ring_depth_rate_penalty(setup.sensor, view, real, setup.drops.rate_shrink,
                                         axis_name, keep)
     else:
       penalty = rate_penalty(setup.drops, keep, real[1], axis_name)
-    return adv + setup.drops.rate_weight * penalty, adv
+    return total + setup.drops.rate_weight * penalty, adv
 
   (_, loss_g), dscan = jax.value_and_grad(objective, has_aux=True)(fake)
   (grads,) = fake_vjp(dscan)
@@ -547,7 +619,12 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   metrics = dict(d_metrics, loss_g=loss_g,
                  drop_rate=jnp.mean(fake <= codec.ALPHA),
                  mask_drop_rate=jnp.mean(mask < 0.5),
-                 real_drop_rate=jnp.mean(batch <= codec.ALPHA))
+                 real_drop_rate=jnp.mean(batch <= codec.ALPHA),
+                 # How far the scene's range has moved: drops.depth_weight.
+                 depth_gap=jnp.mean(jnp.abs(ring_depth_gap(fake, batch, axis_name))),
+                 # Share of the generated returns that dip: drops.dip_weight.
+                 dip_share=_dip_share(fake, axis_name),
+                 real_dip_share=_dip_share(batch, axis_name))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,

@@ -392,7 +392,8 @@ def test_mask_lr_zero_freezes_the_measurability_head():
 @pytest.mark.parametrize('field,value', [('mask_dropout', 1.5), ('mask_noise', -1.0),
                                          ('mask_lr', 0.0), ('rate_by', 'pixel'),
                                          ('rate_shrink', -1.0), ('rate_shrink', 5.0),
-                                         ('rate_head_only', True)])
+                                         ('rate_head_only', True), ('depth_weight', -1.0),
+                                         ('dip_weight', -1.0)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
   c.drops[field] = value  # rate_shrink with rate_by='image', rate_head_only
@@ -421,3 +422,91 @@ def test_only_the_mask_channel_and_ring_bias_change_the_architecture():
   old = tiny_config()
   del old['drops']  # a run from before the options: all off.
   assert configs.architecture_diff(old, a) == {}
+
+
+def test_ring_depth_gap_against_numpy():
+  x, keep = _scans_and_keep(seed=3, rate=0.4)
+  real, real_keep = _scans_and_keep(seed=4, rate=0.2)
+  x = np.asarray(x).copy()
+  x[:, 0] = -2.0     # a row the generator drops entirely: no gap there
+  x[:, 1, :5] = -1.0  # drops at another drop constant are drops
+  got = np.asarray(trainer.ring_depth_gap(jnp.asarray(x), real))
+  want = []
+  for r in range(x.shape[1]):
+    f, q = x[:, r].astype(np.float64), np.asarray(real)[:, r].astype(np.float64)
+    kept_f, kept_q = f[f > ALPHA], q[q > ALPHA]
+    want.append(kept_f.mean() - kept_q.mean() if len(kept_f) and len(kept_q) else 0.0)
+  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+  assert got[0] == 0.0
+  penalty = trainer.depth_penalty(jnp.asarray(x), real)
+  assert float(penalty) == pytest.approx(np.mean(np.square(want)), rel=1e-5)
+  # The gradient reaches the generated returns only, each by its row's gap.
+  g = np.asarray(jax.grad(trainer.depth_penalty)(jnp.asarray(x), real))
+  n = (x > ALPHA).sum(axis=(0, 2))
+  want_g = 2 * np.asarray(want) / np.maximum(n, 1) / x.shape[1]
+  np.testing.assert_allclose(g, np.where(x > ALPHA, want_g[None, :, None], 0.0),
+                             rtol=1e-4, atol=1e-9)
+  assert float(jnp.abs(jax.grad(lambda q: trainer.depth_penalty(
+      jnp.asarray(x), q))(real)).max()) == 0.0
+
+
+@pytest.mark.parametrize('term', ['depth_weight', 'dip_weight'])
+def test_the_depth_terms_move_the_generated_returns(term):
+  """One G step with the term weighted to dominate brings the generated
+  rows' mean returned value towards the real scans' (near surfaces, x =
+  0.8; depth_weight), or fills the dips among the returns (dip_weight),
+  where the same step without it does not."""
+  measure = {
+      'depth_weight': lambda scan, real: jnp.mean(jnp.abs(trainer.ring_depth_gap(scan, real))),
+      'dip_weight': lambda scan, real: trainer.dip_penalty(scan)}[term]
+  gaps = {}
+  for weight in (0.0, 1e3):
+    c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
+                             rate_head_only=True, **{term: weight})
+    mesh = parallel.data_mesh(jax.devices()[:1])
+    step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+    z = jax.random.normal(jax.random.key(2), (c.batch_size, setup.settings.latent_dim))
+    keys = jax.random.split(jax.random.key(3), c.batch_size)
+    real = np.where(np.asarray(_scans_and_keep(b=c.batch_size)[1]) > 0, 0.8,
+                    ALPHA).astype(np.float32)
+    def gap(g_params):
+      scan = trainer.fake_scans(setup, g_params, z, keys)['scan']
+      return float(measure(scan, jnp.asarray(real)))
+    before = gap(state.g_params)
+    state, m = step(parallel.replicate(state, mesh), parallel.shard_batch(real, mesh),
+                    jax.random.key(1))
+    m = parallel.to_host(m)
+    if term == 'depth_weight':
+      assert float(m['depth_gap']) == pytest.approx(before, rel=0.2)  # logged, same scale
+    gaps[weight] = gap(parallel.to_host(state.g_params)) - before
+  # Each falls in one step by more than 1% of where it started, and by that
+  # much more than without the term.
+  assert gaps[1e3] < -before / 100 and gaps[1e3] < gaps[0.0] - before / 100, (before, gaps)
+
+
+def test_dips_against_loops():
+  rng = np.random.default_rng(6)
+  x = rng.uniform(-0.9, 1, (3, 5, 12)).astype(np.float32)
+  x[rng.uniform(size=x.shape) < 0.2] = ALPHA
+  x[0, 0, 0] = -2.0  # a drop at another drop constant is a drop too
+  depth, counted = (np.asarray(a) for a in trainer.dips(jnp.asarray(x)))
+  want_d, want_c = np.zeros(x.shape), np.zeros(x.shape, bool)
+  for n, r, c in np.ndindex(*x.shape):
+    trio = [x[n, r, (c + k) % 12] for k in (-1, 0, 1)]  # the ring wraps around
+    if min(trio) > ALPHA:
+      want_c[n, r, c] = True
+      want_d[n, r, c] = max(0.0, min(trio[0], trio[2]) - trio[1] - trainer.DIP)
+  np.testing.assert_array_equal(counted, want_c)
+  np.testing.assert_allclose(depth, want_d, rtol=0, atol=1e-6)
+  assert 0 < (want_d > 0).sum() < want_c.sum()
+  assert float(trainer.dip_penalty(jnp.asarray(x))) == pytest.approx(
+      want_d.sum() / want_c.sum(), rel=1e-5)
+  # The gradient raises each dip and leaves its neighbours.
+  g = np.asarray(jax.grad(trainer.dip_penalty)(jnp.asarray(x)))
+  np.testing.assert_allclose(g, np.where(want_d > 0, -1.0 / want_c.sum(), 0.0), rtol=1e-5)
+  # Rings that vary smoothly all the way round have no dips; one pixel
+  # pushed far behind its neighbours is one.
+  smooth = np.broadcast_to(0.2 * np.cos(np.arange(12) * np.pi / 6), (1, 5, 12)).copy()
+  assert float(trainer.dip_penalty(jnp.asarray(smooth))) == 0.0
+  smooth[0, 2, 6] -= 0.2
+  assert float(trainer.dip_penalty(jnp.asarray(smooth))) > 0.0

@@ -1,0 +1,153 @@
+"""Does a run keep its scene's range? The depth drift of point-drop variants.
+
+    python benchmarks/depth_drift.py --runs NAME=RUN_DIR,... [--num 32]
+        [--out benchmarks/results --name depth_drift]
+
+Variants that hold their drops can lose their depth: the inverted x_tilde
+of held-out scans lies far behind the surfaces (README "Depth that
+survives the drops"). For each run this reports
+  * over training, ``depth_gap`` from its metrics.jsonl (runs trained since
+    the metric exists): the mean over rings of |mean returned value of the
+    generated scans - the real batch's|, in normalised inverse depth;
+  * at each kept checkpoint, on ``--num`` held-out simulated test scans
+    inverted by that checkpoint's EMA generator: the fit and completion
+    AbsRel, the measurability's AUC on surfaces nearer than 40 m, the
+    median complete depth of the bottom eight rings (the ground) of 64
+    sampled x_tilde against the real scans' returns there, and their
+    speckle: the share of x_tilde pixels farther than both ring neighbours
+    by more than DIP in normalised inverse depth (isolated far pixels, a
+    checkerboard at its worst; the simulator's complete scans have almost
+    none).
+Evaluations are cached in the result JSON: a rerun only adds what is new.
+Writes ``NAME.json`` and ``NAME.png`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import numpy as np
+
+import common
+import drops_screen
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+GROUND_RINGS = 8  # the bottom rings: near ground in every simulated scene
+DIP = 0.05
+
+
+def speckle(x, valid=None) -> float:
+  """Share of pixels of ``x`` (B, H, W) below both ring neighbours by more
+  than DIP; with ``valid``, of the valid pixels with valid neighbours."""
+  left, right = np.roll(x, 1, -1), np.roll(x, -1, -1)
+  dips = x < np.minimum(left, right) - DIP
+  if valid is None:
+    return float(dips.mean())
+  both = valid & np.roll(valid, 1, -1) & np.roll(valid, -1, -1)
+  return float(dips[both].mean())
+
+
+def gap_curve(workdir: str) -> dict:
+  steps, gaps = [], []
+  if not os.path.exists(os.path.join(workdir, 'metrics.jsonl')):
+    return {'step': steps, 'depth_gap': gaps}
+  with open(os.path.join(workdir, 'metrics.jsonl')) as f:
+    for line in f:
+      m = json.loads(line)
+      if 'depth_gap' in m:
+        steps.append(m['step'])
+        gaps.append(m['depth_gap'])
+  return {'step': steps, 'depth_gap': gaps}
+
+
+def samples(workdir: str, step: int, num: int = 64) -> dict:
+  """Of ``num`` sampled x_tilde: the median complete depth (m) of the bottom
+  rings, and the speckle."""
+  import jax
+  from dusty_jax import codec, generator, sampling
+  params, _ = generator.load(workdir, step=step, log=lambda *_: None)
+  x = np.asarray(sampling.sample(params, jax.random.key(7), num)['inv_depth'])
+  depth = np.asarray(codec.complete_depth(x, params.sensor))
+  return {'ground_depth_m': float(np.median(depth[:, -GROUND_RINGS:])), 'speckle': speckle(x)}
+
+
+def plot(results: dict, real: dict, path: str):
+  plt = common.pyplot()
+  fig, axes = plt.subplots(1, 4, figsize=(20, 4))
+  for name, r in results.items():
+    line, = axes[0].plot(r['curve']['step'], r['curve']['depth_gap'], lw=1, label=name)
+    ev = sorted(r['checkpoints'].items(), key=lambda kv: int(kv[0]))
+    steps = [int(s) for s, _ in ev]
+    axes[1].plot(steps, [e['fit']['abs_rel'] for _, e in ev], 'o-', color=line.get_color(),
+                 label=f'{name}: fit')
+    axes[1].plot(steps, [e['completion']['abs_rel'] for _, e in ev], 's--',
+                 color=line.get_color(), label=f'{name}: completion')
+    axes[2].plot(steps, [e['ground_depth_m'] for _, e in ev], 'o-', color=line.get_color(),
+                 label=name)
+    axes[3].plot(steps, [e['speckle'] for _, e in ev], 'o-', color=line.get_color(), label=name)
+  axes[2].axhline(real['ground_m'], color='k', ls=':', label='real returns')
+  axes[3].axhline(real['speckle'], color='k', ls=':', label='complete simulated scans')
+  axes[0].set_ylabel('depth_gap (normalised inverse depth)')
+  axes[1].set_ylabel('AbsRel of the inverted x_tilde (held-out scans)')
+  axes[2].set_ylabel(f'median depth of the bottom {GROUND_RINGS} rings (m)')
+  axes[3].set_ylabel(f'speckle of x_tilde (share of dips > {DIP})')
+  for ax in axes:
+    ax.set_xlabel('training step (batch 16)')
+    ax.legend(fontsize=7)
+  fig.suptitle('Depth drift of point-drop variants (CPU study scale)')
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument('--runs', required=True, help='NAME=RUN_DIR,...')
+  p.add_argument('--num', type=int, default=32, help='held-out scans inverted')
+  p.add_argument('--invert-steps', type=int, default=100)
+  p.add_argument('--out', default=os.path.join(HERE, 'results'))
+  p.add_argument('--name', default='depth_drift')
+  a = p.parse_args(argv)
+  from dusty_jax import checkpoint, codec, configs, sensor as sensor_lib
+  from dusty_jax.data import arrays, pipeline
+  common.print_banner()
+  path = os.path.join(a.out, f'{a.name}.json')
+  old = json.load(open(path))['results'] if os.path.exists(path) else {}
+  config = configs.study('dusty1')
+  sensor = sensor_lib.from_config(config.sensor)
+  d = pipeline.dataset_dir(config, sensor, log=print)
+  split = lambda s, kind='': np.asarray(arrays.load_split(d, s, sensor, kind))
+  test = split('test')
+  complete = split('test', 'complete')[:64]
+  real = {'ground_m': float(np.median(test[:, -GROUND_RINGS:][
+              np.asarray(codec.valid_depth(test[:, -GROUND_RINGS:], sensor))])),
+          'speckle': speckle(np.asarray(codec.encode(complete, sensor)),
+                             np.asarray(codec.valid_depth(complete, sensor)))}
+  results = {}
+  for item in [r for r in a.runs.split(',') if r]:
+    name, run = item.split('=', 1)
+    done = old.get(name, {}).get('checkpoints', {})
+    r = {'run': run, 'curve': gap_curve(run), 'checkpoints': {}}
+    for s in sorted(checkpoint.manager(run, keep=1000).all_steps()):
+      if s == 0:
+        continue
+      e = done.get(str(s))
+      if e is None or e.get('num') != a.num or 'speckle' not in e:
+        e = drops_screen.evaluate(run, split, a.num, a.invert_steps, step=s)
+        e.update(num=a.num, **samples(run, s))
+      r['checkpoints'][str(s)] = e
+      print(f'{name:24s} step {s:5d}: fit {e["fit"]["abs_rel"]:.3f}, completion '
+            f'{e["completion"]["abs_rel"]:.3f}, AUC <40 m {e["measurability"]["auc_near"]:.3f}, '
+            f'ground {e["ground_depth_m"]:.1f} m (real {real["ground_m"]:.1f}), speckle '
+            f'{e["speckle"]:.3f} (real {real["speckle"]:.4f})', flush=True)
+    results[name] = r
+  os.makedirs(a.out, exist_ok=True)
+  common.write_json(path, dict(results=dict(old, **results), real=real, num=a.num,
+                               invert_steps=a.invert_steps))
+  plot(dict(old, **results), real, os.path.join(a.out, f'{a.name}.png'))
+
+
+if __name__ == '__main__':
+  main()
