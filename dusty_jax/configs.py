@@ -247,9 +247,14 @@ HEAD_DROPS_VARIANT = dict(RANGE_DROPS_VARIANT, rate_head_only=True)
 # The same, with no gradient of the mask reaching the trunk at all (the GAN's
 # straight-through one included): the trunk learns from x_tilde alone.
 DETACHED_DROPS_VARIANT = dict(HEAD_DROPS_VARIANT, mask_detached=True)
+# The same, with G also filling the dips among its returns (dip_weight): the
+# far speckle that cost the mask-detached variant its depth at other seeds
+# (README "Depth that survives the drops").
+DIP_DROPS_VARIANT = dict(DETACHED_DROPS_VARIANT, dip_weight=10.0)
 # Study model suffix -> the drops options it adds (beyond the paper).
 STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT,
-               '_headdrops': HEAD_DROPS_VARIANT, '_detdrops': DETACHED_DROPS_VARIANT}
+               '_headdrops': HEAD_DROPS_VARIANT, '_detdrops': DETACHED_DROPS_VARIANT,
+               '_dipdrops': DIP_DROPS_VARIANT}
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
@@ -258,8 +263,9 @@ def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
   through the augmentation, see benchmarks/results/study.md), or
   dusty1_drops / dusty2_drops (with DROPS_VARIANT), dusty1_rangedrops /
   dusty2_rangedrops (with RANGE_DROPS_VARIANT), dusty1_headdrops /
-  dusty2_headdrops (with HEAD_DROPS_VARIANT), or dusty1_detdrops /
-  dusty2_detdrops (with DETACHED_DROPS_VARIANT)."""
+  dusty2_headdrops (with HEAD_DROPS_VARIANT), dusty1_detdrops /
+  dusty2_detdrops (with DETACHED_DROPS_VARIANT), or dusty1_dipdrops /
+  dusty2_dipdrops (with DIP_DROPS_VARIANT)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()
