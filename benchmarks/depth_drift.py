@@ -1,7 +1,7 @@
 """Does a run keep its scene's range? The depth drift of point-drop variants.
 
-    python benchmarks/depth_drift.py --runs NAME=RUN_DIR,... [--num 32]
-        [--every 500] [--out benchmarks/results --name depth_drift]
+    python benchmarks/depth_drift.py --runs NAME=RUN_DIR,... [--pretrained NAME,...]
+        [--num 32] [--every 500] [--out benchmarks/results --name depth_drift]
 
 Variants that hold their drops can lose their depth: the inverted x_tilde
 of held-out scans lies far behind the surfaces (README "Depth that
@@ -18,8 +18,10 @@ survives the drops"). For each run this reports
     by more than DIP in normalised inverse depth (isolated far pixels, a
     checkerboard at its worst; the simulator's complete scans have almost
     none).
+``--pretrained`` scores shipped generators the same way, beside the runs.
 Evaluations are cached in the result JSON: a rerun only adds what is new.
-Writes ``NAME.json`` and ``NAME.png`` to ``--out``.
+Writes ``NAME.json``, ``NAME.png`` and ``NAME_samples.png`` (one sample of
+each run's last checkpoint and of each shipped generator) to ``--out``.
 """
 
 from __future__ import annotations
@@ -62,20 +64,50 @@ def gap_curve(workdir: str) -> dict:
   return {'step': steps, 'depth_gap': gaps}
 
 
-def samples(workdir: str, step: int, num: int = 64) -> dict:
-  """Of ``num`` sampled x_tilde: the median complete depth (m) of the bottom
-  rings, and the speckle."""
+def samples(params, num: int = 64) -> dict:
+  """Of ``num`` x_tilde sampled by ``params``: the median complete depth (m)
+  of the bottom rings, and the speckle."""
   import jax
-  from dusty_jax import codec, generator, sampling
-  params, _ = generator.load(workdir, step=step, log=lambda *_: None)
+  from dusty_jax import codec, sampling
   x = np.asarray(sampling.sample(params, jax.random.key(7), num)['inv_depth'])
   depth = np.asarray(codec.complete_depth(x, params.sensor))
   return {'ground_depth_m': float(np.median(depth[:, -GROUND_RINGS:])), 'speckle': speckle(x)}
 
 
-def plot(results: dict, real: dict, path: str):
+def picture(generators: dict, path: str):
+  """One sampled x_tilde per generator ({label: params}), its left quarter
+  enlarged: the speckle is single pixels."""
+  import jax
+  from dusty_jax import sampling
   plt = common.pyplot()
-  fig, axes = plt.subplots(1, 4, figsize=(20, 4))
+  fig, axes = plt.subplots(len(generators), 2, figsize=(16, 2.1 * len(generators)),
+                           gridspec_kw=dict(width_ratios=(4, 1)), squeeze=False)
+  for (label, params), (full, crop) in zip(generators.items(), axes):
+    x = np.asarray(sampling.sample(params, jax.random.key(7), 1)['inv_depth'])[0]
+    for ax, img in ((full, x), (crop, x[-32:, :64])):
+      ax.imshow(img, cmap='turbo', vmin=-1, vmax=1, interpolation='nearest', aspect='auto')
+      ax.set_xticks([])
+      ax.set_yticks([])
+    full.set_ylabel(label, fontsize=8)
+    full.set_title(f'x_tilde (speckle {speckle(x[None]):.3f})', fontsize=8)
+    crop.set_title('bottom-left 32 x 64, enlarged', fontsize=8)
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+
+
+def plot(results: dict, shipped: dict, real: dict, path: str):
+  plt = common.pyplot()
+  fig, axes = plt.subplots(2, 2, figsize=(15, 9))
+  axes = axes.ravel()
+  last = max([int(s) for r in results.values() for s in r['checkpoints']] or [0])
+  for (name, e), colour in zip(shipped.items(), ('k', '0.55', 'tab:brown', 'tab:olive')):
+    point = dict(marker='*', ms=12, ls='none', color=colour)
+    axes[1].plot([last], [e['fit']['abs_rel']], label=f'{name} (shipped): fit', **point)
+    axes[1].plot([last], [e['completion']['abs_rel']], color=colour, marker='P',
+                 ms=10, ls='none', label=f'{name} (shipped): completion')
+    axes[2].plot([last], [e['ground_depth_m']], label=name, **point)
+    axes[3].plot([last], [e['speckle']], label=name, **point)
   for name, r in results.items():
     line, = axes[0].plot(r['curve']['step'], r['curve']['depth_gap'], lw=1, label=name)
     ev = sorted(r['checkpoints'].items(), key=lambda kv: int(kv[0]))
@@ -93,9 +125,9 @@ def plot(results: dict, real: dict, path: str):
   axes[1].set_ylabel('AbsRel of the inverted x_tilde (held-out scans)')
   axes[2].set_ylabel(f'median depth of the bottom {GROUND_RINGS} rings (m)')
   axes[3].set_ylabel(f'speckle of x_tilde (share of dips > {DIP})')
-  for ax in axes:
+  for i, ax in enumerate(axes):
     ax.set_xlabel('training step (batch 16)')
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, ncol=2 if i == 1 else 1)
   fig.suptitle('Depth drift of point-drop variants (CPU study scale)')
   fig.tight_layout()
   fig.savefig(path, dpi=110)
@@ -104,14 +136,18 @@ def plot(results: dict, real: dict, path: str):
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument('--runs', required=True, help='NAME=RUN_DIR,...')
+  p.add_argument('--runs', default='', help='NAME=RUN_DIR,...')
   p.add_argument('--num', type=int, default=32, help='held-out scans inverted')
   p.add_argument('--invert-steps', type=int, default=100)
+  p.add_argument('--pretrained', default='',
+                 help='shipped generators to score beside the runs: NAME,... '
+                      '(drawn as stars at the right edge)')
   p.add_argument('--every', type=int, default=500, help='evaluate checkpoints at multiples of')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   p.add_argument('--name', default='depth_drift')
   a = p.parse_args(argv)
-  from dusty_jax import checkpoint, codec, configs, sensor as sensor_lib
+  import dusty_jax
+  from dusty_jax import checkpoint, codec, configs, generator, sensor as sensor_lib
   from dusty_jax.data import arrays, pipeline
   common.print_banner()
   path = os.path.join(a.out, f'{a.name}.json')
@@ -136,18 +172,39 @@ def main(argv=None):
         continue
       e = done.get(str(s))
       if e is None or e.get('num') != a.num or 'speckle' not in e:
-        e = drops_screen.evaluate(run, split, a.num, a.invert_steps, step=s)
-        e.update(num=a.num, **samples(run, s))
+        params, _ = generator.load(run, step=s, log=lambda *_: None)
+        e = drops_screen.evaluate(run, split, a.num, a.invert_steps, params=params)
+        e.update(num=a.num, **samples(params))
       r['checkpoints'][str(s)] = e
       print(f'{name:24s} step {s:5d}: fit {e["fit"]["abs_rel"]:.3f}, completion '
             f'{e["completion"]["abs_rel"]:.3f}, AUC <40 m {e["measurability"]["auc_near"]:.3f}, '
             f'ground {e["ground_depth_m"]:.1f} m (real {real["ground_m"]:.1f}), speckle '
             f'{e["speckle"]:.3f} (real {real["speckle"]:.4f})', flush=True)
     results[name] = r
+  old_shipped = json.load(open(path)).get('shipped', {}) if os.path.exists(path) else {}
+  shipped = {}
+  for name in [n for n in a.pretrained.split(',') if n]:
+    e = old_shipped.get(name)
+    if e is None or e.get('num') != a.num:
+      params = dusty_jax.load_pretrained(name)
+      e = drops_screen.evaluate('', split, a.num, a.invert_steps, params=params)
+      e.update(num=a.num, **samples(params))
+    shipped[name] = e
+    print(f'{name:24s} shipped   : fit {e["fit"]["abs_rel"]:.3f}, completion '
+          f'{e["completion"]["abs_rel"]:.3f}, AUC <40 m {e["measurability"]["auc_near"]:.3f}, '
+          f'ground {e["ground_depth_m"]:.1f} m, speckle {e["speckle"]:.3f}', flush=True)
   os.makedirs(a.out, exist_ok=True)
-  common.write_json(path, dict(results=dict(old, **results), real=real, num=a.num,
-                               invert_steps=a.invert_steps))
-  plot(dict(old, **results), real, os.path.join(a.out, f'{a.name}.png'))
+  common.write_json(path, dict(results=dict(old, **results), shipped=dict(old_shipped, **shipped),
+                               real=real, num=a.num, invert_steps=a.invert_steps))
+  plot(dict(old, **results), dict(old_shipped, **shipped), real,
+       os.path.join(a.out, f'{a.name}.png'))
+  last = {f'{name}, step {max(r["checkpoints"], key=int)}':
+          generator.load(r['run'], step=int(max(r['checkpoints'], key=int)),
+                         log=lambda *_: None)[0]
+          for name, r in results.items() if r['checkpoints']}
+  last.update({f'{name} (shipped)': dusty_jax.load_pretrained(name) for name in shipped})
+  if last:
+    picture(last, os.path.join(a.out, f'{a.name}_samples.png'))
 
 
 if __name__ == '__main__':

@@ -42,7 +42,7 @@ def plot(runs: dict, out: str):
   fig, (ax_rate, ax_logit) = plt.subplots(1, 2, figsize=(13, 4.2))
   real = []
   for i, (name, r) in enumerate(runs.items()):
-    colour = f'C{i}'
+    colour = plt.cm.tab20(i % 20)  # more runs than the default cycle's 10 colours
     style = dict(color=colour, linewidth=1.2, alpha=0.85)
     label = LABELS.get(name, name)
     ax_rate.plot(r['step'], r['drop_rate'], label=label, **style)

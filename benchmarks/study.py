@@ -57,7 +57,8 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_dipdrops': 'DUSty-I, mask detached, dips filled',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
-EXPORT_NAMES = {'dusty1_detdrops': 'sim-dusty1', 'dusty1_drops': 'sim-dusty1-channel',
+EXPORT_NAMES = {'dusty1_dipdrops': 'sim-dusty1', 'dusty1_detdrops': 'sim-dusty1-detached',
+                'dusty1_drops': 'sim-dusty1-channel',
                 'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
@@ -579,7 +580,7 @@ def main(argv=None):
       if m in params_by_model and m not in seeded:
         config = dusty_jax.load_checkpoint(os.path.join(a.workdir, m))[1]
         training = {'config': f'experiments/study_{m}.py', 'scale': a.scale,
-                    'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
+                    'seed': int(config.seed), 'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
                     'augment': config.augment, 'drops': config.drops.to_dict(),
                     'beyond_the_paper': m.endswith(tuple(configs.STUDY_DROPS))}
         source = f'benchmarks/study.py --scale {a.scale} ({m})'

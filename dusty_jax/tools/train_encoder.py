@@ -47,13 +47,18 @@ def main(argv=None):
                      flag_values=f)
   flags.DEFINE_integer('real_batch', d.real_batch, 'training scans per step',
                        lower_bound=1, flag_values=f)
+  flags.DEFINE_float('max_drop', d.max_drop, 'largest share of points a random drop '
+                     'corruption removes (from 0.5)', lower_bound=0.5, upper_bound=1.0,
+                     flag_values=f)
+  flags.DEFINE_float('max_noise', d.max_noise, "largest std of the random range noise "
+                     "(normalised inverse depth)", lower_bound=0, flag_values=f)
   flags.DEFINE_integer('seed', d.seed, 'random seed', flag_values=f)
   flags.DEFINE_string('export', '', 'also write generator + encoder as this .npz',
                       flag_values=f)
   tools.parse(f, argv, __doc__)
   opts = TrainOptions(steps=f.steps, batch=f.batch, lr=f.lr, w_latent=f.w_latent,
                       w_rec=f.w_rec, w_real=f.w_real, real_batch=f.real_batch,
-                      seed=f.seed)
+                      max_drop=f.max_drop, max_noise=f.max_noise, seed=f.seed)
   path = tools.run(train, f.workdir, opts, f.export)
   print(f'wrote {path}')
 
