@@ -58,7 +58,7 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
 EXPORT_NAMES = {'dusty1_dipdrops': 'sim-dusty1', 'dusty1_detdrops': 'sim-dusty1-detached',
-                'dusty1_drops': 'sim-dusty1-channel',
+                'dusty1_drops': 'sim-dusty1-channel', 'dusty2_dipdrops': 'sim-dusty2',
                 'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
@@ -392,7 +392,7 @@ def md_table(header, rows):
   return '\n'.join(lines)
 
 
-def report(results, trade_result, train_seconds, a, machine, kitti_file,
+def report(results, trade_result, trade_model, train_seconds, a, machine, kitti_file,
            kitti_model='dusty1', restoration_file='study_restoration.png'):
   f3 = lambda v: f'{v:.3f}'
   d_rows = []
@@ -483,7 +483,8 @@ def report(results, trade_result, train_seconds, a, machine, kitti_file,
          'Rows: per model two test scans, drop 90%. Columns: clean scan, corrupted'
          ' input, x_tilde, measurability, complete depth.',
          ''] if restoration_file else []),
-      f'## Inversion: iterations against error (DUSty-I, {trade_result["num"]} scans)',
+      f'## Inversion: iterations against error ({LABELS[trade_model]}, '
+      f'{trade_result["num"]} scans)',
       '',
       md_table(['iterations', 'compl. AbsRel', 'compl. MAE m', 'fit AbsRel', 's per scan'],
                t_rows),
@@ -566,7 +567,7 @@ def main(argv=None):
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
-  text = report(results, trade_result, train_seconds, a, machine, kitti_file, variant,
+  text = report(results, trade_result, key, train_seconds, a, machine, kitti_file, variant,
                 restoration_file)
   with open(os.path.join(a.out, 'study.md'), 'w') as f:
     f.write(text)
