@@ -17,7 +17,7 @@ survives the drops"). For each run this reports
     speckle: the share of x_tilde pixels farther than both ring neighbours
     by more than DIP in normalised inverse depth (isolated far pixels, a
     checkerboard at its worst; the simulator's complete scans have almost
-    none).
+    none), and their peaks, the same nearer than both neighbours.
 ``--pretrained`` scores shipped generators the same way, beside the runs.
 Evaluations are cached in the result JSON: a rerun only adds what is new.
 Writes ``NAME.json``, ``NAME.png`` and ``NAME_samples.png`` (one sample of
@@ -40,11 +40,15 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 GROUND_RINGS = 8  # the bottom rings: near ground in every simulated scene
 
 
-def speckle(x, valid=None) -> float:
+def speckle(x, valid=None, peaks: bool = False) -> float:
   """Share of pixels of ``x`` (B, H, W) below both ring neighbours by more
-  than DIP; with ``valid``, of the valid pixels with valid neighbours."""
+  than DIP (``peaks``: above both); with ``valid``, of the valid pixels with
+  valid neighbours."""
   left, right = np.roll(x, 1, -1), np.roll(x, -1, -1)
-  dips = x < np.minimum(left, right) - DIP
+  if peaks:
+    dips = x > np.maximum(left, right) + DIP
+  else:
+    dips = x < np.minimum(left, right) - DIP
   if valid is None:
     return float(dips.mean())
   both = valid & np.roll(valid, 1, -1) & np.roll(valid, -1, -1)
@@ -66,12 +70,14 @@ def gap_curve(workdir: str) -> dict:
 
 def samples(params, num: int = 64) -> dict:
   """Of ``num`` x_tilde sampled by ``params``: the median complete depth (m)
-  of the bottom rings, and the speckle."""
+  of the bottom rings, the speckle, and the peaks (the same, nearer than
+  both neighbours: what the dip term leaves unpaid)."""
   import jax
   from dusty_jax import codec, sampling
   x = np.asarray(sampling.sample(params, jax.random.key(7), num)['inv_depth'])
   depth = np.asarray(codec.complete_depth(x, params.sensor))
-  return {'ground_depth_m': float(np.median(depth[:, -GROUND_RINGS:])), 'speckle': speckle(x)}
+  return {'ground_depth_m': float(np.median(depth[:, -GROUND_RINGS:])), 'speckle': speckle(x),
+          'peaks': speckle(x, peaks=True)}
 
 
 def picture(generators: dict, path: str):
@@ -161,7 +167,9 @@ def main(argv=None):
   real = {'ground_m': float(np.median(test[:, -GROUND_RINGS:][
               np.asarray(codec.valid_depth(test[:, -GROUND_RINGS:], sensor))])),
           'speckle': speckle(np.asarray(codec.encode(complete, sensor)),
-                             np.asarray(codec.valid_depth(complete, sensor)))}
+                             np.asarray(codec.valid_depth(complete, sensor))),
+          'peaks': speckle(np.asarray(codec.encode(complete, sensor)),
+                           np.asarray(codec.valid_depth(complete, sensor)), peaks=True)}
   results = {}
   for item in [r for r in a.runs.split(',') if r]:
     name, run = item.split('=', 1)
@@ -175,11 +183,14 @@ def main(argv=None):
         params, _ = generator.load(run, step=s, log=lambda *_: None)
         e = drops_screen.evaluate(run, split, a.num, a.invert_steps, params=params)
         e.update(num=a.num, **samples(params))
+      elif 'peaks' not in e:  # scored before peaks were: only the samples again
+        e.update(samples(generator.load(run, step=s, log=lambda *_: None)[0]))
       r['checkpoints'][str(s)] = e
       print(f'{name:24s} step {s:5d}: fit {e["fit"]["abs_rel"]:.3f}, completion '
             f'{e["completion"]["abs_rel"]:.3f}, AUC <40 m {e["measurability"]["auc_near"]:.3f}, '
             f'ground {e["ground_depth_m"]:.1f} m (real {real["ground_m"]:.1f}), speckle '
-            f'{e["speckle"]:.3f} (real {real["speckle"]:.4f})', flush=True)
+            f'{e["speckle"]:.3f} (real {real["speckle"]:.4f}), peaks {e["peaks"]:.3f} '
+            f'(real {real["peaks"]:.4f})', flush=True)
     results[name] = r
   old_shipped = json.load(open(path)).get('shipped', {}) if os.path.exists(path) else {}
   shipped = {}
@@ -189,10 +200,13 @@ def main(argv=None):
       params = dusty_jax.load_pretrained(name)
       e = drops_screen.evaluate('', split, a.num, a.invert_steps, params=params)
       e.update(num=a.num, **samples(params))
+    elif 'peaks' not in e:
+      e.update(samples(dusty_jax.load_pretrained(name)))
     shipped[name] = e
     print(f'{name:24s} shipped   : fit {e["fit"]["abs_rel"]:.3f}, completion '
           f'{e["completion"]["abs_rel"]:.3f}, AUC <40 m {e["measurability"]["auc_near"]:.3f}, '
-          f'ground {e["ground_depth_m"]:.1f} m, speckle {e["speckle"]:.3f}', flush=True)
+          f'ground {e["ground_depth_m"]:.1f} m, speckle {e["speckle"]:.3f}, '
+          f'peaks {e["peaks"]:.3f}', flush=True)
   os.makedirs(a.out, exist_ok=True)
   common.write_json(path, dict(results=dict(old, **results), shipped=dict(old_shipped, **shipped),
                                real=real, num=a.num, invert_steps=a.invert_steps))
