@@ -27,6 +27,7 @@ each run's last checkpoint and of each shipped generator) to ``--out``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 
@@ -157,19 +158,19 @@ def main(argv=None):
   from dusty_jax.data import arrays, pipeline
   common.print_banner()
   path = os.path.join(a.out, f'{a.name}.json')
-  old = json.load(open(path))['results'] if os.path.exists(path) else {}
+  cached = json.load(open(path)) if os.path.exists(path) else {}
+  old, old_shipped = cached.get('results', {}), cached.get('shipped', {})
   config = configs.study('dusty1')
   sensor = sensor_lib.from_config(config.sensor)
   d = pipeline.dataset_dir(config, sensor, log=print)
-  split = lambda s, kind='': np.asarray(arrays.load_split(d, s, sensor, kind))
+  # Every checkpoint's evaluation reads the same test arrays: load each once.
+  split = functools.cache(lambda s, kind='': np.asarray(arrays.load_split(d, s, sensor, kind)))
   test = split('test')
   complete = split('test', 'complete')[:64]
+  x, valid = (np.asarray(f(complete, sensor)) for f in (codec.encode, codec.valid_depth))
   real = {'ground_m': float(np.median(test[:, -GROUND_RINGS:][
               np.asarray(codec.valid_depth(test[:, -GROUND_RINGS:], sensor))])),
-          'speckle': speckle(np.asarray(codec.encode(complete, sensor)),
-                             np.asarray(codec.valid_depth(complete, sensor))),
-          'peaks': speckle(np.asarray(codec.encode(complete, sensor)),
-                           np.asarray(codec.valid_depth(complete, sensor)), peaks=True)}
+          'speckle': speckle(x, valid), 'peaks': speckle(x, valid, peaks=True)}
   results = {}
   for item in [r for r in a.runs.split(',') if r]:
     name, run = item.split('=', 1)
@@ -192,7 +193,6 @@ def main(argv=None):
             f'{e["speckle"]:.3f} (real {real["speckle"]:.4f}), peaks {e["peaks"]:.3f} '
             f'(real {real["peaks"]:.4f})', flush=True)
     results[name] = r
-  old_shipped = json.load(open(path)).get('shipped', {}) if os.path.exists(path) else {}
   shipped = {}
   for name in [n for n in a.pretrained.split(',') if n]:
     e = old_shipped.get(name)

@@ -139,15 +139,14 @@ def curves(workdir: str, real_rings, num: int = 64) -> dict:
   return out
 
 
-def evaluate(workdir: str, split, num: int, steps: int, step: int | None = None,
-             params=None) -> dict:
-  """Disentanglement of held-out test scans inverted by the EMA generator
-  (of checkpoint ``step``; None: the latest), or by ``params`` if given."""
+def evaluate(workdir: str, split, num: int, steps: int, params=None) -> dict:
+  """Disentanglement of held-out test scans inverted by the run's (latest)
+  EMA generator, or by ``params`` if given."""
   import jax
   from dusty_jax import codec, generator, inversion
   from dusty_jax.metrics import ground_truth
   if params is None:
-    params, _ = generator.load(workdir, step=step, log=lambda *_: None)
+    params, _ = generator.load(workdir, log=lambda *_: None)
   idx = np.arange(num)
   obs, comp, prob = (np.asarray(split('test', k)[idx]) for k in
                      ('', 'complete', 'drop_prob'))

@@ -562,8 +562,8 @@ def main(argv=None):
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   restoration_file = picture_restoration(a.workdir, params_by_model,
                                          os.path.join(a.out, 'study_restoration.png'))
-  variant = next((m for m in ('dusty1_dipdrops', 'dusty1_detdrops', 'dusty1_headdrops', 'dusty1_rangedrops',
-                              'dusty1_drops')
+  variant = next((m for m in ('dusty1_dipdrops', 'dusty1_detdrops', 'dusty1_headdrops',
+                              'dusty1_rangedrops', 'dusty1_drops')
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
@@ -581,7 +581,8 @@ def main(argv=None):
       if m in params_by_model and m not in seeded:
         config = dusty_jax.load_checkpoint(os.path.join(a.workdir, m))[1]
         training = {'config': f'experiments/study_{m}.py', 'scale': a.scale,
-                    'seed': int(config.seed), 'steps': int(config.num_steps), 'batch_size': int(config.batch_size),
+                    'seed': int(config.seed), 'steps': int(config.num_steps),
+                    'batch_size': int(config.batch_size),
                     'augment': config.augment, 'drops': config.drops.to_dict(),
                     'beyond_the_paper': m.endswith(tuple(configs.STUDY_DROPS))}
         source = f'benchmarks/study.py --scale {a.scale} ({m})'

@@ -533,11 +533,10 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
     view = scan[:2] if isinstance(scan, tuple) else scan
     adv = losses.g_loss(setup.discriminator.apply(d_local, _augment(setup, key, view)))
     total = adv
+    x, x_real = (view[0], real[0]) if isinstance(view, tuple) else (view, real)  # the scans
     if setup.drops.depth_weight > 0:
-      x, x_real = (view[0], real[0]) if isinstance(view, tuple) else (view, real)
       total = total + setup.drops.depth_weight * depth_penalty(x, x_real, axis_name)
     if setup.drops.dip_weight > 0:
-      x = view[0] if isinstance(view, tuple) else view
       total = total + setup.drops.dip_weight * dip_penalty(x, axis_name)
     if setup.drops.rate_weight == 0:
       return total, adv

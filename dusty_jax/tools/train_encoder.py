@@ -56,9 +56,8 @@ def main(argv=None):
   flags.DEFINE_string('export', '', 'also write generator + encoder as this .npz',
                       flag_values=f)
   tools.parse(f, argv, __doc__)
-  opts = TrainOptions(steps=f.steps, batch=f.batch, lr=f.lr, w_latent=f.w_latent,
-                      w_rec=f.w_rec, w_real=f.w_real, real_batch=f.real_batch,
-                      max_drop=f.max_drop, max_noise=f.max_noise, seed=f.seed)
+  # One flag per option, of the same name: a saved options.json reruns as flags.
+  opts = TrainOptions(**{k: f[k].value for k in dataclasses.asdict(d)})
   path = tools.run(train, f.workdir, opts, f.export)
   print(f'wrote {path}')
 
