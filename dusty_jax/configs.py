@@ -94,6 +94,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
                           # inverse depth - real's)^2: anchors the range
   d.dip_weight = 0.0      # G: + weight x mean depth of the dips among its
                           # returns (pixels behind both ring neighbours)
+  d.peak_weight = 0.0     # G: + weight x excess over the real scans' of the
+                          # mean height of its peaks (in front of both)
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -161,7 +163,7 @@ def validate(c) -> None:
     if not ok:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
   for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight', 'rate_shrink',
-            'depth_weight', 'dip_weight'):
+            'depth_weight', 'dip_weight', 'peak_weight'):
     need_drop(d[f] >= 0, f, 'must be >= 0')
   need_drop(d.mask_dropout <= 1, 'mask_dropout', 'a probability: must be <= 1')
   need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')

@@ -104,6 +104,11 @@ class DropOptions:
     differentiated, so a dip is filled, not its neighbours lowered).
     Variants that keep their drops grow such dips, a checkerboard of far
     pixels that looks like drops to D; real surfaces hardly ever have them.
+  * ``peak_weight`` rho: G's loss + rho * how far the mean height of the
+    peaks among the generated returns (each pixel nearer than both ring
+    neighbours by more than DIP, by how much) exceeds the real batch's
+    (peak_penalty). Real scans have peaks (poles, trunks): only the excess,
+    a lattice of near pixels, is paid for.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -122,6 +127,7 @@ class DropOptions:
   mask_detached: bool = False
   depth_weight: float = 0.0
   dip_weight: float = 0.0
+  peak_weight: float = 0.0
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -133,7 +139,8 @@ class DropOptions:
                rate_shrink=float(d.rate_shrink),
                rate_head_only=bool(d.rate_head_only),
                mask_detached=bool(d.mask_detached),
-               depth_weight=float(d.depth_weight), dip_weight=float(d.dip_weight))
+               depth_weight=float(d.depth_weight), dip_weight=float(d.dip_weight),
+               peak_weight=float(d.peak_weight))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -362,28 +369,62 @@ def depth_penalty(scan, real, axis_name=None):
 DIP = 0.05  # normalised inverse depth: how far behind both ring neighbours a dip lies
 
 
+def _ring_outliers(scan, sign, margin):
+  """(amounts, counted): per pixel of ``scan`` (B, H, W), how far it lies
+  beyond both ring neighbours by more than ``margin``, behind them (``sign``
+  -1: a dip) or in front of them (+1: a peak), 0 if not; and whether it and
+  both neighbours are returns (> ALPHA; the ring wraps around). The
+  neighbours and the masks are not differentiated."""
+  keep = lax.stop_gradient(scan > codec.ALPHA)
+  left, right = jnp.roll(scan, 1, -1), jnp.roll(scan, -1, -1)
+  bound = lax.stop_gradient(jnp.maximum(left, right) if sign > 0 else jnp.minimum(left, right))
+  counted = keep & jnp.roll(keep, 1, -1) & jnp.roll(keep, -1, -1)
+  return jnp.where(counted, jax.nn.relu(sign * (scan - bound) - margin), 0.0), counted
+
+
 def dips(scan, dip: float = DIP):
   """(depths, counted): per pixel of ``scan`` (B, H, W), how far it lies
   behind both ring neighbours beyond ``dip`` (0 if not), and whether it and
   both neighbours are returns (> ALPHA; the ring wraps around). The
   neighbours and the masks are not differentiated."""
-  keep = lax.stop_gradient(scan > codec.ALPHA)
-  near = lax.stop_gradient(jnp.minimum(jnp.roll(scan, 1, -1), jnp.roll(scan, -1, -1)))
-  counted = keep & jnp.roll(keep, 1, -1) & jnp.roll(keep, -1, -1)
-  return jnp.where(counted, jax.nn.relu(near - scan - dip), 0.0), counted
+  return _ring_outliers(scan, -1, dip)
+
+
+def peaks(scan, peak: float = DIP):
+  """(heights, counted): as ``dips``, for pixels in front of both ring
+  neighbours beyond ``peak``: thin near objects (poles, trunks) in real
+  scans, a lattice of near pixels in generated ones."""
+  return _ring_outliers(scan, 1, peak)
+
+
+def _share(outliers, scan, axis_name=None):
+  amount, counted = outliers(scan)
+  return _psum((amount > 0).sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
+
+
+def _mean_amount(outliers, scan, axis_name=None):
+  amount, counted = outliers(scan)
+  return _psum(amount.sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
 
 
 def _dip_share(scan, axis_name=None):
-  depth, counted = dips(scan)
-  return _psum((depth > 0).sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
+  return _share(dips, scan, axis_name)
 
 
 def dip_penalty(scan, axis_name=None):
   """``dip_weight``'s term: the mean dip depth over the counted pixels (the
   global batch's with ``axis_name``)."""
-  depth, counted = dips(scan)
-  n = _psum(counted.sum(), axis_name)
-  return _psum(depth.sum(), axis_name) / jnp.maximum(n, 1)
+  return _mean_amount(dips, scan, axis_name)
+
+
+def peak_penalty(scan, real, axis_name=None):
+  """``peak_weight``'s term: how far the mean peak height over the counted
+  pixels of ``scan`` exceeds the real batch's (0 if it does not; the global
+  batches' with ``axis_name``). Real scans have peaks, their poles and
+  trunks, so G keeps as many as they have and pays for the excess only."""
+  excess = _mean_amount(peaks, scan, axis_name) - lax.stop_gradient(
+      _mean_amount(peaks, real, axis_name))
+  return jax.nn.relu(excess)
 
 
 # Metric depth edges (m) of the ``rate_by='ring_depth'`` cells.
@@ -523,7 +564,7 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
   ``key``: the augmentation keys, one per example. With point-drop options
   ``fake`` is the pair (scans, keep-masks) and ``real`` the real batch's
   (scans, keep-masks) pair (for ``rate_weight``); the returned loss is then the
-  adversarial loss alone, without the rate, depth or dip penalty. With ``rate_head_only``
+  adversarial loss alone, without the rate, depth, dip or peak penalty. With ``rate_head_only``
   ``fake`` is (scans, keep-masks, keep probabilities of the detached head),
   and the rate term is taken on the third.
   """
@@ -538,6 +579,8 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
       total = total + setup.drops.depth_weight * depth_penalty(x, x_real, axis_name)
     if setup.drops.dip_weight > 0:
       total = total + setup.drops.dip_weight * dip_penalty(x, axis_name)
+    if setup.drops.peak_weight > 0:
+      total = total + setup.drops.peak_weight * peak_penalty(x, x_real, axis_name)
     if setup.drops.rate_weight == 0:
       return total, adv
     keep = scan[2] if setup.drops.rate_head_only else scan[1]
@@ -623,7 +666,10 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
                  depth_gap=jnp.mean(jnp.abs(ring_depth_gap(fake, batch, axis_name))),
                  # Share of the generated returns that dip: drops.dip_weight.
                  dip_share=_dip_share(fake, axis_name),
-                 real_dip_share=_dip_share(batch, axis_name))
+                 real_dip_share=_dip_share(batch, axis_name),
+                 # Share of them in front of both neighbours: drops.peak_weight.
+                 peak_share=_share(peaks, fake, axis_name),
+                 real_peak_share=_share(peaks, batch, axis_name))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,

@@ -393,7 +393,7 @@ def test_mask_lr_zero_freezes_the_measurability_head():
                                          ('mask_lr', 0.0), ('rate_by', 'pixel'),
                                          ('rate_shrink', -1.0), ('rate_shrink', 5.0),
                                          ('rate_head_only', True), ('depth_weight', -1.0),
-                                         ('dip_weight', -1.0)])
+                                         ('dip_weight', -1.0), ('peak_weight', -1.0)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
   c.drops[field] = value  # rate_shrink with rate_by='image', rate_head_only
@@ -450,15 +450,17 @@ def test_ring_depth_gap_against_numpy():
       jnp.asarray(x), q))(real)).max()) == 0.0
 
 
-@pytest.mark.parametrize('term', ['depth_weight', 'dip_weight'])
+@pytest.mark.parametrize('term', ['depth_weight', 'dip_weight', 'peak_weight'])
 def test_the_depth_terms_move_the_generated_returns(term):
   """One G step with the term weighted to dominate brings the generated
   rows' mean returned value towards the real scans' (near surfaces, x =
-  0.8; depth_weight), or fills the dips among the returns (dip_weight),
-  where the same step without it does not."""
+  0.8; depth_weight), or fills the dips among the returns (dip_weight), or
+  lowers their peaks (peak_weight; the flat real scans have none), where
+  the same step without it does not."""
   measure = {
       'depth_weight': lambda scan, real: jnp.mean(jnp.abs(trainer.ring_depth_gap(scan, real))),
-      'dip_weight': lambda scan, real: trainer.dip_penalty(scan)}[term]
+      'dip_weight': lambda scan, real: trainer.dip_penalty(scan),
+      'peak_weight': lambda scan, real: trainer.peak_penalty(scan, real)}[term]
   gaps = {}
   for weight in (0.0, 1e3):
     c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
@@ -484,29 +486,55 @@ def test_the_depth_terms_move_the_generated_returns(term):
   assert gaps[1e3] < -before / 100 and gaps[1e3] < gaps[0.0] - before / 100, (before, gaps)
 
 
-def test_dips_against_loops():
+@pytest.mark.parametrize('kind', ['dips', 'peaks'])
+def test_ring_outliers_against_loops(kind):
+  sign = {'dips': -1, 'peaks': 1}[kind]
   rng = np.random.default_rng(6)
   x = rng.uniform(-0.9, 1, (3, 5, 12)).astype(np.float32)
   x[rng.uniform(size=x.shape) < 0.2] = ALPHA
   x[0, 0, 0] = -2.0  # a drop at another drop constant is a drop too
-  depth, counted = (np.asarray(a) for a in trainer.dips(jnp.asarray(x)))
+  depth, counted = (np.asarray(a) for a in getattr(trainer, kind)(jnp.asarray(x)))
   want_d, want_c = np.zeros(x.shape), np.zeros(x.shape, bool)
   for n, r, c in np.ndindex(*x.shape):
     trio = [x[n, r, (c + k) % 12] for k in (-1, 0, 1)]  # the ring wraps around
     if min(trio) > ALPHA:
       want_c[n, r, c] = True
-      want_d[n, r, c] = max(0.0, min(trio[0], trio[2]) - trio[1] - trainer.DIP)
+      bound = max(trio[0], trio[2]) if sign > 0 else min(trio[0], trio[2])
+      want_d[n, r, c] = max(0.0, sign * (trio[1] - bound) - trainer.DIP)
   np.testing.assert_array_equal(counted, want_c)
   np.testing.assert_allclose(depth, want_d, rtol=0, atol=1e-6)
   assert 0 < (want_d > 0).sum() < want_c.sum()
-  assert float(trainer.dip_penalty(jnp.asarray(x))) == pytest.approx(
-      want_d.sum() / want_c.sum(), rel=1e-5)
-  # The gradient raises each dip and leaves its neighbours.
-  g = np.asarray(jax.grad(trainer.dip_penalty)(jnp.asarray(x)))
-  np.testing.assert_allclose(g, np.where(want_d > 0, -1.0 / want_c.sum(), 0.0), rtol=1e-5)
-  # Rings that vary smoothly all the way round have no dips; one pixel
-  # pushed far behind its neighbours is one.
+  if kind == 'dips':
+    penalty = trainer.dip_penalty
+    assert float(trainer._dip_share(jnp.asarray(x))) == pytest.approx(
+        (want_d > 0).sum() / want_c.sum(), rel=1e-6)
+  else:  # against real scans without peaks: their mean height
+    penalty = lambda q: trainer.peak_penalty(q, jnp.zeros_like(q))
+  assert float(penalty(jnp.asarray(x))) == pytest.approx(want_d.sum() / want_c.sum(), rel=1e-5)
+  # The gradient moves each outlier towards its neighbours and leaves them.
+  g = np.asarray(jax.grad(penalty)(jnp.asarray(x)))
+  np.testing.assert_allclose(g, np.where(want_d > 0, sign / want_c.sum(), 0.0), rtol=1e-5)
+  # Rings that vary smoothly all the way round have none; one pixel
+  # pushed far beyond its neighbours is one.
   smooth = np.broadcast_to(0.2 * np.cos(np.arange(12) * np.pi / 6), (1, 5, 12)).copy()
-  assert float(trainer.dip_penalty(jnp.asarray(smooth))) == 0.0
-  smooth[0, 2, 6] -= 0.2
-  assert float(trainer.dip_penalty(jnp.asarray(smooth))) > 0.0
+  assert float(penalty(jnp.asarray(smooth))) == 0.0
+  smooth[0, 2, 6] += sign * 0.2
+  assert float(penalty(jnp.asarray(smooth))) > 0.0
+
+
+def test_peak_penalty_pays_for_the_excess_only():
+  """Real scans' own peaks are free: the term is the generated mean height
+  beyond the real one, 0 below it, and the real batch gets no gradient."""
+  flat = np.full((2, 4, 16), 0.3, np.float32)
+  real = flat.copy()
+  real[0, 1, 3] = real[1, 2, 9] = 0.6  # two poles: height 0.3 - DIP each
+  real_mean = 2 * (0.3 - trainer.DIP) / real.size
+  fake = flat.copy()
+  fake[0, 0, ::4] = 0.5  # a lattice of four peaks, 0.2 - DIP each
+  fake_mean = 4 * (0.2 - trainer.DIP) / fake.size
+  assert fake_mean > real_mean
+  got = trainer.peak_penalty(jnp.asarray(fake), jnp.asarray(real))
+  assert float(got) == pytest.approx(fake_mean - real_mean, rel=1e-5)
+  assert float(trainer.peak_penalty(jnp.asarray(real), jnp.asarray(fake))) == 0.0
+  g_real = jax.grad(lambda q: trainer.peak_penalty(jnp.asarray(fake), q))(jnp.asarray(real))
+  assert float(jnp.abs(g_real).max()) == 0.0

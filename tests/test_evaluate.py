@@ -112,6 +112,7 @@ def test_evaluate_cli(smoke_run, tmp_path):
   assert len(row['jsd']) == 2 and all(0 <= c <= 1 for c in row['cov'])
   assert all(0 <= v <= 1 for v in row['1nna']) and all(v > 0 for v in row['mmd'])
   assert ev['protocol'] == 'reference' and ev['num'] == 4 and ev['points'] == 32
+  assert ev['split'] == 'test'
   assert ev['seeds']['metric'] == [0, 1] and 'linspace' in ev['subset']
   assert ev['sensor']['height'] == 16 and ev['dusty_jax_version']
   # The paper's protocol, in process: its subset of 4 test scans has 3.
@@ -121,6 +122,13 @@ def test_evaluate_cli(smoke_run, tmp_path):
   ev = json.load(open(os.path.join(workdir, 'evaluation.json')))
   assert ev['protocol'] == 'paper' and ev['num'] == 3 and 'skip' in ev['subset']
   assert len(ev['rows']['dusty1']['jsd']) == 1
+  # Against the validation split, written beside the test split's result.
+  evaluate.main(['--workdir', workdir, '--num', '4', '--points', '32', '--seeds', '1',
+                 '--protocol', 'paper', '--notrain_row', '--split', 'val'])
+  val = json.load(open(os.path.join(workdir, 'evaluation_val.json')))
+  assert val['split'] == 'val' and val['num'] == 3
+  assert json.load(open(os.path.join(workdir, 'evaluation.json'))) == ev
+  assert val['rows']['dusty1']['jsd'] != ev['rows']['dusty1']['jsd']  # other clouds
 
 
 def test_tolerance_tuning_baseline(tiny):
