@@ -9,7 +9,8 @@ survives the drops"). For each run this reports
   * over training, ``depth_gap`` from its metrics.jsonl (runs trained since
     the metric exists): the mean over rings of |mean returned value of the
     generated scans - the real batch's|, in normalised inverse depth;
-  * at each kept checkpoint, on ``--num`` held-out simulated test scans
+  * at each kept checkpoint (train with ``--config.keep_every=500`` to keep
+    them all), on ``--num`` held-out simulated test scans
     inverted by that checkpoint's EMA generator: the fit and completion
     AbsRel, the measurability's AUC on surfaces nearer than 40 m, the
     median complete depth of the bottom eight rings (the ground) of 64

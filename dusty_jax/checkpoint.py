@@ -131,9 +131,12 @@ def quiet():
         sys.unraisablehook = _quiet_saved['hook']
 
 
-def manager(workdir: str, keep: int = 3, interval: int = 1) -> ocp.CheckpointManager:
+def manager(workdir: str, keep: int = 3, interval: int = 1,
+            keep_every: int = 0) -> ocp.CheckpointManager:
+  """The run's checkpoint manager: the last ``keep`` steps, and with
+  ``keep_every`` also every step that is a multiple of it."""
   path = os.path.join(os.path.abspath(workdir), DIRECTORY)
-  opts = ocp.CheckpointManagerOptions(max_to_keep=keep,
+  opts = ocp.CheckpointManagerOptions(max_to_keep=keep, keep_period=keep_every or None,
                                       save_interval_steps=interval, create=True)
   with quiet():  # it reads every step's metadata, warning about damaged ones.
     return ocp.CheckpointManager(path, options=opts)

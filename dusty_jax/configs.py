@@ -68,6 +68,8 @@ def default() -> ml_collections.ConfigDict:
   c.image_every = 500
   c.checkpoint_every = 1000
   c.keep_checkpoints = 3
+  c.keep_every = 0               # also keep each checkpoint whose step is a
+                                 # multiple of this (0: none), for curves over training
   c.num_images = 8               # samples in each PNG grid
   return c
 
@@ -139,6 +141,8 @@ def validate(c) -> None:
             'checkpoint_every', 'keep_checkpoints', 'latent_dim', 'ch_base',
             'ch_max', 'num_images'):
     need(isinstance(c[f], int) and c[f] >= 1, f, 'must be a whole number >= 1')
+  need(isinstance(c.keep_every, int) and c.keep_every >= 0, 'keep_every',
+       'must be a whole number >= 0 (0: keep the last keep_checkpoints only)')
   need(c.lr > 0, 'lr', 'the learning rate must be > 0')
   need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
        else 'beta2', 'Adam betas must lie in [0, 1)')
@@ -182,8 +186,10 @@ def validate(c) -> None:
 
 
 # Runs written before these options existed trained with what is now the
-# non-default choice; their config.json lacks the field.
-LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0}
+# non-default choice (keep_every: kept as the default does); their
+# config.json lacks the field.
+LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0,
+          'keep_every': 0}
 
 
 def upgrade(config) -> ml_collections.ConfigDict:

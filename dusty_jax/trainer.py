@@ -777,7 +777,8 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
     if os.path.isfile(os.path.join(workdir, generator.SPEC_FILE)):
       tolerance = generator.read_spec(workdir)[2]  # may have been tuned since.
     generator.save_spec(workdir, sensor, setup.settings, angles, tolerance)
-  mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
+  mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints,
+                            keep_every=config.keep_every)
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
   state = init_state(setup, k_init, ring_keep_rate(depth, sensor)

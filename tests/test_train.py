@@ -197,6 +197,15 @@ def test_nan_stops_training_keeping_last_good_checkpoint(smoke_run, tmp_path):
   assert sorted(os.listdir(os.path.join(other, 'checkpoints'))) == ['2']
 
 
+def test_keep_every_keeps_the_multiples_beside_the_last(smoke_run, tmp_path):
+  config, _, _ = smoke_run
+  config = config.copy_and_resolve_references()
+  config.num_steps, config.checkpoint_every = 7, 1
+  config.keep_checkpoints, config.keep_every = 2, 3
+  trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
+  assert sorted(int(s) for s in os.listdir(tmp_path / 'w' / 'checkpoints')) == [3, 6, 7]
+
+
 def test_missing_dataset_message(tmp_path):
   config = tiny_config()
   config.data.dir = str(tmp_path / 'nothing')
@@ -235,7 +244,8 @@ def test_ema_rampup_follows_generator_early():
 
 @pytest.mark.parametrize('field,value', [
     ('batch_size', 0), ('checkpoint_every', 0), ('log_every', 0), ('lr', -0.002),
-    ('num_steps', 0), ('keep_checkpoints', 0), ('r1_every', 0), ('tau', 0.0)])
+    ('num_steps', 0), ('keep_checkpoints', 0), ('keep_every', -1), ('r1_every', 0),
+    ('tau', 0.0)])
 def test_config_is_checked_before_any_work(tmp_path, field, value):
   config = tiny_config(**{field: value})
   workdir = tmp_path / 'w'
