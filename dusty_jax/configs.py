@@ -259,10 +259,13 @@ DETACHED_DROPS_VARIANT = dict(HEAD_DROPS_VARIANT, mask_detached=True)
 # far speckle that cost the mask-detached variant its depth at other seeds
 # (README "Depth that survives the drops").
 DIP_DROPS_VARIANT = dict(DETACHED_DROPS_VARIANT, dip_weight=10.0)
+# The same, with G also paying for peaks among its returns beyond the real
+# scans' (peak_weight): the lattice of near pixels the dips variant leaves.
+PEAK_DROPS_VARIANT = dict(DIP_DROPS_VARIANT, peak_weight=10.0)
 # Study model suffix -> the drops options it adds (beyond the paper).
 STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT,
                '_headdrops': HEAD_DROPS_VARIANT, '_detdrops': DETACHED_DROPS_VARIANT,
-               '_dipdrops': DIP_DROPS_VARIANT}
+               '_dipdrops': DIP_DROPS_VARIANT, '_peakdrops': PEAK_DROPS_VARIANT}
 
 
 def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
@@ -272,8 +275,9 @@ def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
   dusty1_drops / dusty2_drops (with DROPS_VARIANT), dusty1_rangedrops /
   dusty2_rangedrops (with RANGE_DROPS_VARIANT), dusty1_headdrops /
   dusty2_headdrops (with HEAD_DROPS_VARIANT), dusty1_detdrops /
-  dusty2_detdrops (with DETACHED_DROPS_VARIANT), or dusty1_dipdrops /
-  dusty2_dipdrops (with DIP_DROPS_VARIANT)."""
+  dusty2_detdrops (with DETACHED_DROPS_VARIANT), dusty1_dipdrops /
+  dusty2_dipdrops (with DIP_DROPS_VARIANT), or dusty1_peakdrops /
+  dusty2_peakdrops (with PEAK_DROPS_VARIANT)."""
   if scale not in STUDY_SCALES:
     raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
   c = default()
