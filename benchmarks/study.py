@@ -59,7 +59,8 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled',
           'dusty1_peakdrops': 'DUSty-I, mask detached, dips filled, peaks held'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
-EXPORT_NAMES = {'dusty1_dipdrops': 'sim-dusty1', 'dusty1_detdrops': 'sim-dusty1-detached',
+EXPORT_NAMES = {'dusty1_peakdrops': 'sim-dusty1', 'dusty1_dipdrops': 'sim-dusty1-dips',
+                'dusty1_detdrops': 'sim-dusty1-detached',
                 'dusty1_drops': 'sim-dusty1-channel', 'dusty2_dipdrops': 'sim-dusty2',
                 'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
