@@ -2,6 +2,7 @@
 
     python benchmarks/depth_drift.py --runs NAME=RUN_DIR,... [--pretrained NAME,...]
         [--num 32] [--every 500] [--out benchmarks/results --name depth_drift]
+        [--samples NAME]
 
 Variants that hold their drops can lose their depth: the inverted x_tilde
 of held-out scans lies far behind the surfaces (README "Depth that
@@ -153,6 +154,9 @@ def main(argv=None):
   p.add_argument('--every', type=int, default=500, help='evaluate checkpoints at multiples of')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   p.add_argument('--name', default='depth_drift')
+  p.add_argument('--samples', default='',
+                 help="the samples picture's name (default NAME_samples): it shows the "
+                      'runs and shipped generators of this call only')
   a = p.parse_args(argv)
   import dusty_jax
   from dusty_jax import checkpoint, codec, configs, generator, sensor as sensor_lib
@@ -219,7 +223,7 @@ def main(argv=None):
           for name, r in results.items() if r['checkpoints']}
   last.update({f'{name} (shipped)': dusty_jax.load_pretrained(name) for name in shipped})
   if last:
-    picture(last, os.path.join(a.out, f'{a.name}_samples.png'))
+    picture(last, os.path.join(a.out, f'{a.samples or a.name + "_samples"}.png'))
 
 
 if __name__ == '__main__':
