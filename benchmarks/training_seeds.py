@@ -152,11 +152,12 @@ def main(argv=None):
     for r in runs:
       print(f'{name[:30] + " " + os.path.basename(r.rstrip("/")):44s}{scores[r]["seed"]:5d}' +
             ''.join(f'{scores[r][m] * s:16.{DECIMALS[m]}f}' for m, (_, s, _) in METRICS.items()))
-  print(f'\n{"mean +- std over training seeds":49s}{cols}')
+  print(f'\n{"mean +- std over training seeds":49s}' +
+        ''.join(f'{label:>18s}' for label, _, _ in METRICS.values()))
   for name in groups:
     print(f'{name[:49]:49s}' + ''.join(
         f'{stats[name][m]["mean"] * s:.{DECIMALS[m]}f} +- {stats[name][m]["std"] * s:.{DECIMALS[m]}f}'
-        .rjust(16) for m, (_, s, _) in METRICS.items()))
+        .rjust(18) for m, (_, s, _) in METRICS.items()))
   ref = next(iter(groups))
   for name in list(groups)[1:]:
     verdict = ', '.join(
