@@ -18,8 +18,9 @@ one run per model answers "no worse?" for that seed only.
 Scores are cached in the result JSON (by run, split, N, points and seeds): a
 rerun only scores what is new. A run's own evaluation.json (or
 evaluation_val.json), written by ``python -m dusty_jax.tools.evaluate`` with
-the same protocol, N, points and seeds, is read instead of scoring again. Writes ``NAME.json`` and ``NAME.png`` (each
-metric's per-seed values and group means).
+the same protocol, N, points and seeds, is read instead of scoring again.
+Writes ``NAME.json`` and ``NAME.png`` (each metric's per-seed values and
+group means).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import os
 import numpy as np
 
 import common
-from dusty_jax import evaluation, generator
+from dusty_jax import configs, evaluation, generator
 from dusty_jax.data import arrays, pipeline
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -71,9 +72,10 @@ def saved_record(run: str, a) -> dict | None:
 def score(run: str, a) -> dict:
   """{metric: mean over the sampling seeds} of ``run``'s Table II row (the
   evaluate command's record in the run where it matches, else computed)."""
-  params, config = generator.load(run, log=lambda *_: None)
+  config = configs.load(run)
   rec = saved_record(run, a)
-  if rec is None:
+  if rec is None:  # only then is the generator needed
+    params = generator.load(run, log=lambda *_: None)[0]
     d = pipeline.dataset_dir(config, params.sensor, log=lambda *_: None)
     rec = evaluation.synthesis(params, arrays.load_split(d, a.split, params.sensor),
                                num=a.num, points=a.points, seeds=a.seeds, progress=True)
@@ -156,8 +158,9 @@ def main(argv=None):
         ''.join(f'{label:>18s}' for label, _, _ in METRICS.values()))
   for name in groups:
     print(f'{name[:49]:49s}' + ''.join(
-        f'{stats[name][m]["mean"] * s:.{DECIMALS[m]}f} +- {stats[name][m]["std"] * s:.{DECIMALS[m]}f}'
-        .rjust(18) for m, (_, s, _) in METRICS.items()))
+        f'{stats[name][m]["mean"] * s:.{DECIMALS[m]}f} +- '
+        f'{stats[name][m]["std"] * s:.{DECIMALS[m]}f}'.rjust(18)
+        for m, (_, s, _) in METRICS.items()))
   ref = next(iter(groups))
   for name in list(groups)[1:]:
     verdict = ', '.join(
