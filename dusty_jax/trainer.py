@@ -797,6 +797,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
   bar = tqdm.tqdm(total=config.num_steps, initial=start, disable=not is_main,
                   unit='step', dynamic_ncols=True, file=sys.stderr)
   done = start
+  finished = False  # No error on its way: closing the writer may raise.
   try:
     for i in range(start, config.num_steps):
       batch = parallel.shard_batch(batches(i), mesh)
@@ -825,6 +826,7 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
                      ema, z_img, jax.random.key(0))
       bar.update()
+    finished = True
   except KeyboardInterrupt:
     bar.close()
     checkpoint.wait(mngr)
@@ -836,6 +838,13 @@ def train_and_evaluate(config, workdir: str, log=print) -> TrainState:
          'no checkpoint was saved yet; rerun the same command to start afresh')) from None
   finally:
     bar.close()
-    checkpoint.wait(mngr)
-    writer.close()
+    try:
+      checkpoint.wait(mngr)
+    except BaseException:
+      finished = False
+      raise
+    finally:
+      # A second failure (the disk that failed a checkpoint also fails the
+      # metrics) must not replace the one already on its way.
+      writer.close(quiet=not finished)
   return state

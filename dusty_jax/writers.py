@@ -1,18 +1,22 @@
 """Where metrics and pictures go: JSONL, TensorBoard event files, PNG.
 
-The event files are written by tensorboardX; neither TensorFlow nor clu is
-needed.
+The event files are written with tensorboardX's synchronous ``EventsWriter``;
+neither TensorFlow nor clu is needed. Not its ``SummaryWriter``: that one
+writes from a thread and flushes again at exit, so a full disk, already
+reported in one line, would end in tracebacks from its exit hook.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
 
 import numpy as np
 from PIL import Image
-import tensorboardX
+from tensorboardX import event_file_writer, summary
+from tensorboardX.proto import event_pb2
 
 
 class MetricWriter:
@@ -38,31 +42,62 @@ class MetricWriter:
       with open(path + '.tmp', 'w') as f:
         f.writelines(keep)
       os.replace(path + '.tmp', path)
+    self.jsonl_path = path
     self.jsonl = open(path, 'a')
-    # On resume, tell TensorBoard to drop what an interrupted run logged
-    # after the checkpoint (it reads the earlier event file too).
-    self.events = tensorboardX.SummaryWriter(
-        workdir, purge_step=resume_step + 1 if resume_step else None)
+    self.events = event_file_writer.EventsWriter(os.path.join(workdir, 'events'))
+    self.events_path = self.events._file_name  # pylint: disable=protected-access
+    if resume_step:
+      # Tell TensorBoard to drop what an interrupted run logged after the
+      # checkpoint (it reads the earlier event file too).
+      self.events.write_event(event_pb2.Event(
+          step=resume_step + 1, wall_time=time.time(),
+          session_log=event_pb2.SessionLog(status=event_pb2.SessionLog.START)))
 
   def write(self, step: int, scalars: dict):
     if not self.enabled:
       return
     now = time.time()
     scalars = {k: float(v) for k, v in scalars.items()}
-    self.jsonl.write(json.dumps({'step': step, 'time': now, **scalars}) + '\n')
+    with self._naming(self.jsonl_path):
+      self.jsonl.write(json.dumps({'step': step, 'time': now, **scalars}) + '\n')
     for k, v in scalars.items():
-      self.events.add_scalar(k, v, global_step=step, walltime=now)
+      with self._naming(self.events_path):
+        self.events.write_event(event_pb2.Event(
+            step=step, wall_time=now, summary=summary.scalar(k, v)))
     self.flush()
 
   def flush(self):
     if self.enabled:
-      self.jsonl.flush()
-      self.events.flush()
+      with self._naming(self.jsonl_path):
+        self.jsonl.flush()
+      with self._naming(self.events_path):
+        self.events.flush()
 
-  def close(self):
-    if self.enabled:
-      self.jsonl.close()
-      self.events.close()
+  def close(self, quiet: bool = False):
+    """Closes both files, each even if the other fails (e.g. on a full
+    disk); then raises the first error unless ``quiet``."""
+    if not self.enabled:
+      return
+    first = None
+    for path, f in ((self.jsonl_path, self.jsonl), (self.events_path, self.events)):
+      try:
+        with self._naming(path):
+          f.close()
+      except OSError as e:
+        first = first or e
+    if first is not None and not quiet:
+      raise first
+
+  @staticmethod
+  @contextlib.contextmanager
+  def _naming(path):
+    """An OSError without a file name (a flush) gets ``path``."""
+    try:
+      yield
+    except OSError as e:
+      if e.filename is None and e.errno is not None:
+        raise OSError(e.errno, e.strerror, path) from e
+      raise
 
 
 # ----------------------------------------------------------------------------

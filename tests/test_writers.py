@@ -1,9 +1,11 @@
 """MetricWriter: metrics.jsonl and the TensorBoard event file hold what was written."""
 
+import errno
 import json
 import os
 
 import numpy as np
+import pytest
 
 from dusty_jax import writers
 from event_files import read_events, scalars
@@ -70,3 +72,28 @@ def test_line_plot_draws_a_png_of_the_asked_size(tmp_path):
   # Both series are drawn in colour (matplotlib's first two cycle colours).
   for rgb in ((31, 119, 180), (255, 127, 14)):
     assert (np.abs(img.astype(int) - rgb).sum(-1) < 30).sum() > 20
+
+
+def test_a_full_disk_names_the_file_and_closing_releases_both(tmp_path):
+  """/dev/full fails every write with ENOSPC: the error names metrics.jsonl,
+  and close() still closes the event file before raising (nothing is left
+  for an exit hook to flush again); quiet=True raises nothing."""
+  if not os.path.exists('/dev/full'):
+    pytest.skip('needs /dev/full')
+  os.symlink('/dev/full', tmp_path / 'metrics.jsonl')
+  w = writers.MetricWriter(str(tmp_path))
+  with pytest.raises(OSError) as e:
+    w.write(1, {'loss': 1.0})
+  assert e.value.errno == errno.ENOSPC
+  assert e.value.filename == str(tmp_path / 'metrics.jsonl')
+  with pytest.raises(OSError) as e:
+    w.close()
+  assert e.value.errno == errno.ENOSPC
+  assert w.jsonl.closed
+  with pytest.raises(ValueError):  # the event file is closed too
+    w.events.flush()
+  w = writers.MetricWriter(str(tmp_path))
+  with pytest.raises(OSError):
+    w.write(1, {'loss': 1.0})
+  w.close(quiet=True)
+  assert w.jsonl.closed
