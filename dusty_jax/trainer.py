@@ -109,6 +109,14 @@ class DropOptions:
     neighbours by more than DIP, by how much) exceeds the real batch's
     (peak_penalty). Real scans have peaks (poles, trunks): only the excess,
     a lattice of near pixels, is paid for.
+  * ``far_weight`` phi: G's loss + phi * the mean over rings of the squared
+    gap between the share of the generated pixels that are returns beyond
+    FAR_M (40 m) and the real batch's (far_penalty). A pixel is far by its
+    own complete depth x_tilde (not differentiated), and the keep values
+    are differentiated (the head's expected keep with rate_head_only), so
+    the term moves drops, not surfaces. The scans' far structure (sky-like
+    surfaces the sensor hardly returns) otherwise comes back as returns:
+    the synthesis MMD gap lies there (benchmarks/far_returns.py).
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -128,6 +136,7 @@ class DropOptions:
   depth_weight: float = 0.0
   dip_weight: float = 0.0
   peak_weight: float = 0.0
+  far_weight: float = 0.0
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -140,7 +149,7 @@ class DropOptions:
                rate_head_only=bool(d.rate_head_only),
                mask_detached=bool(d.mask_detached),
                depth_weight=float(d.depth_weight), dip_weight=float(d.dip_weight),
-               peak_weight=float(d.peak_weight))
+               peak_weight=float(d.peak_weight), far_weight=float(d.far_weight))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -151,7 +160,7 @@ class DropOptions:
   @property
   def g_needs_mask(self) -> bool:
     """G's loss differentiates the mask itself (not only the scan)."""
-    return self.mask_channel > 0 or self.rate_weight > 0
+    return self.mask_channel > 0 or self.rate_weight > 0 or self.far_weight > 0
 
 
 @flax.struct.dataclass
@@ -427,6 +436,35 @@ def peak_penalty(scan, real, axis_name=None):
   return jax.nn.relu(excess)
 
 
+FAR_M = 40.0  # metres: a return beyond this is far (far_weight, far_share)
+
+
+def _far(x, sensor: SensorSpec):
+  """Pixels of (B, H, W) normalised inverse depth farther than FAR_M (and
+  not a drop: > ALPHA); not differentiated."""
+  x = lax.stop_gradient(x)
+  return (x > codec.ALPHA) & (x <= codec.encode(jnp.float32(FAR_M), sensor))
+
+
+def far_share(scan, sensor: SensorSpec, axis_name=None):
+  """The share of the pixels of ``scan`` that are returns beyond FAR_M (the
+  global batch's with ``axis_name``)."""
+  n = _psum(np.prod(scan.shape), axis_name)
+  return _psum(_far(scan, sensor).sum(), axis_name) / n
+
+
+def far_penalty(sensor: SensorSpec, keep, inv_depth, real, axis_name=None):
+  """``far_weight``'s term: the mean over rows of the squared gap between
+  the share of generated pixels that are far returns, sum(keep x far) / n
+  with far judged on the complete ``inv_depth`` (x_tilde), and the share of
+  the ``real`` scans' pixels that are. Only ``keep`` is differentiated."""
+  n = _psum(keep.shape[0] * keep.shape[2], axis_name)
+  share = lambda a: _psum(a.sum(axis=(0, 2)), axis_name) / n
+  fake = share(keep * _far(inv_depth, sensor))
+  target = lax.stop_gradient(share(_far(real, sensor).astype(keep.dtype)))
+  return jnp.mean(jnp.square(fake - target))
+
+
 # Metric depth edges (m) of the ``rate_by='ring_depth'`` cells.
 RATE_DEPTH_EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
 NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
@@ -566,7 +604,8 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
   (scans, keep-masks) pair (for ``rate_weight``); the returned loss is then the
   adversarial loss alone, without the rate, depth, dip or peak penalty. With ``rate_head_only``
   ``fake`` is (scans, keep-masks, keep probabilities of the detached head),
-  and the rate term is taken on the third.
+  and the rate term is taken on the third. With ``far_weight`` the tuple
+  ends with the complete inverse depth x_tilde.
   """
   d_local = _local(d_params, axis_name)
 
@@ -581,9 +620,13 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
       total = total + setup.drops.dip_weight * dip_penalty(x, axis_name)
     if setup.drops.peak_weight > 0:
       total = total + setup.drops.peak_weight * peak_penalty(x, x_real, axis_name)
+    keep = lambda: scan[2] if setup.drops.rate_head_only else scan[1]
+    if setup.drops.far_weight > 0:  # x_tilde is the last of the tuple
+      total = total + setup.drops.far_weight * far_penalty(
+          setup.sensor, keep(), scan[-1], real[0], axis_name)
     if setup.drops.rate_weight == 0:
       return total, adv
-    keep = scan[2] if setup.drops.rate_head_only else scan[1]
+    keep = keep()
     if setup.drops.rate_by == 'ring_depth':
       penalty = ring_depth_rate_penalty(setup.sensor, view, real, setup.drops.rate_shrink,
                                         axis_name, keep)
@@ -639,7 +682,8 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   # Generator forward once; its VJP serves the G update.
   def fakes(p):
     out = fake_scans(setup, p, z, kmask, detached_head=setup.drops.rate_head_only)
-    return (out['scan'], out['mask']) + ((out['head_keep'],) if 'head_keep' in out else ())
+    return ((out['scan'], out['mask']) + ((out['head_keep'],) if 'head_keep' in out else ())
+            + ((out['inv_depth'],) if setup.drops.far_weight > 0 else ()))
   real, real_keep = batch, (batch > codec.ALPHA).astype(batch.dtype)
   if setup.drops.d_sees_mask or setup.drops.g_needs_mask:
     # The mask is an output G is differentiated through, not only aux.
@@ -669,7 +713,10 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
                  real_dip_share=_dip_share(batch, axis_name),
                  # Share of them in front of both neighbours: drops.peak_weight.
                  peak_share=_share(peaks, fake, axis_name),
-                 real_peak_share=_share(peaks, batch, axis_name))
+                 real_peak_share=_share(peaks, batch, axis_name),
+                 # Share of the pixels that are returns beyond FAR_M: drops.far_weight.
+                 far_share=far_share(fake, setup.sensor, axis_name),
+                 real_far_share=far_share(batch, setup.sensor, axis_name))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,

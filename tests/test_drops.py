@@ -393,7 +393,8 @@ def test_mask_lr_zero_freezes_the_measurability_head():
                                          ('mask_lr', 0.0), ('rate_by', 'pixel'),
                                          ('rate_shrink', -1.0), ('rate_shrink', 5.0),
                                          ('rate_head_only', True), ('depth_weight', -1.0),
-                                         ('dip_weight', -1.0), ('peak_weight', -1.0)])
+                                         ('dip_weight', -1.0), ('peak_weight', -1.0),
+                                         ('far_weight', -1.0)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
   c.drops[field] = value  # rate_shrink with rate_by='image', rate_head_only
@@ -402,7 +403,8 @@ def test_bad_drop_options_name_the_field(field, value):
     configs.validate(c)
 
 
-@pytest.mark.parametrize('field,value', [('rate_weight', 1.0), ('ring_bias', True)])
+@pytest.mark.parametrize('field,value', [('rate_weight', 1.0), ('ring_bias', True),
+                                         ('far_weight', 1.0)])
 def test_baseline_refuses_mask_options(field, value):
   c = tiny_config(model='baseline')
   c.drops[field] = value
@@ -538,3 +540,56 @@ def test_peak_penalty_pays_for_the_excess_only():
   assert float(trainer.peak_penalty(jnp.asarray(real), jnp.asarray(fake))) == 0.0
   g_real = jax.grad(lambda q: trainer.peak_penalty(jnp.asarray(fake), q))(jnp.asarray(real))
   assert float(jnp.abs(g_real).max()) == 0.0
+
+
+def test_far_penalty_against_numpy():
+  """far_weight's term: per row, the share of pixels kept with a complete
+  depth beyond FAR_M minus the real scans' share of far returns, squared and
+  averaged over rows; its gradient reaches the keep values of far pixels
+  only, each by its row's gap, and nothing reaches x_tilde."""
+  sensor = tiny_sensor(16, 64)
+  code = float(codec.encode(np.float32(trainer.FAR_M), sensor))
+  rng = np.random.default_rng(5)
+  inv = rng.uniform(-1.0, 0.0, (4, 16, 64)).astype(np.float32)  # about half beyond
+  keep = rng.uniform(size=inv.shape).astype(np.float32)         # expected keep values
+  real = np.where(rng.uniform(size=inv.shape) < 0.2, ALPHA,
+                  rng.uniform(-1.0, 1.0, inv.shape)).astype(np.float32)
+  far = (inv > ALPHA) & (inv <= code)
+  real_far = (real > ALPHA) & (real <= code)
+  gap = (keep * far).mean(axis=(0, 2)) - real_far.mean(axis=(0, 2))
+  assert 0 < far.mean() < 1 and 0 < real_far.mean() < 1
+  f = lambda k, x: trainer.far_penalty(sensor, k, x, jnp.asarray(real))
+  assert float(f(jnp.asarray(keep), jnp.asarray(inv))) == pytest.approx(
+      np.mean(gap ** 2), rel=1e-5)
+  gk, gx = jax.grad(f, argnums=(0, 1))(jnp.asarray(keep), jnp.asarray(inv))
+  want = 2 * gap[None, :, None] / (4 * 64) / 16 * far
+  np.testing.assert_allclose(np.asarray(gk), want, rtol=1e-4, atol=1e-10)
+  assert float(jnp.abs(gx).max()) == 0.0
+  # far_share, the logged metric: the share of the pixels that are far returns.
+  assert float(trainer.far_share(jnp.asarray(real), sensor)) == pytest.approx(real_far.mean())
+
+
+def test_far_weight_drops_the_far_pixels(monkeypatch):
+  """One G step with far_weight dominating lowers the mean expected keep of
+  the generated pixels beyond FAR_M (here 2 m, so that an untrained G has
+  some; judged before the step) towards the real scans' share of far
+  returns (none: they are all at 0.8) by more than the same step without
+  it, where the ring rate term pulls towards the real keep rate, 1."""
+  monkeypatch.setattr(trainer, 'FAR_M', 2.0)
+  shares = {}
+  for weight in (0.0, 1e3):
+    c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
+                             rate_head_only=True, far_weight=weight)
+    mesh = parallel.data_mesh(jax.devices()[:1])
+    step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+    z = jax.random.normal(jax.random.key(2), (c.batch_size, setup.settings.latent_dim))
+    keys = jax.random.split(jax.random.key(3), c.batch_size)
+    real = np.full((c.batch_size, c.sensor.height, c.sensor.width), 0.8, np.float32)
+    out = lambda p: trainer.fake_scans(setup, p, z, keys, detached_head=True)
+    far = trainer._far(out(state.g_params)['inv_depth'], setup.sensor)  # pixels far at the start
+    kept_far = lambda p: float(jnp.sum(out(p)['head_keep'] * far) / jnp.sum(far))
+    before = kept_far(state.g_params)
+    state, _ = step(parallel.replicate(state, mesh), parallel.shard_batch(real, mesh),
+                    jax.random.key(1))
+    shares[weight] = kept_far(parallel.to_host(state.g_params)) - before
+  assert shares[1e3] < shares[0.0] - before / 1000, (before, shares)
