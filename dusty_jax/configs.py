@@ -100,6 +100,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
                           # mean height of its peaks (in front of both)
   d.far_weight = 0.0      # G: + weight x mean over rings of (share of its
                           # pixels that are returns beyond FAR_M - real's)^2
+  d.range_slope = False   # G: a learned slope per ring of the measurability
+                          # logit in the pixel's own x_tilde, started at 0
   d.ring_bias = False     # G: a learned measurability offset per ring, started
                           # at the training data's keep rate of that ring
   return d
@@ -182,7 +184,7 @@ def validate(c) -> None:
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('far_weight', 0),
                              ('mask_bias', 0),
-                             ('mask_lr', 1.0), ('ring_bias', False),
+                             ('mask_lr', 1.0), ('ring_bias', False), ('range_slope', False),
                              ('mask_detached', False)) if d[f] != off]
   if acting:  # the first option set names the error
     need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act on')
@@ -215,7 +217,8 @@ def model_settings(config) -> models.ModelSettings:
   return models.ModelSettings(model=c.model, latent_dim=int(c.latent_dim),
                               ch_base=int(c.ch_base), ch_max=int(c.ch_max),
                               eqlr=c.eqlr, tau=float(c.tau),
-                              ring_bias=bool(c.drops.ring_bias))
+                              ring_bias=bool(c.drops.ring_bias),
+                              range_slope=bool(c.drops.range_slope))
 
 
 def architecture_diff(old, new) -> dict:
@@ -226,7 +229,8 @@ def architecture_diff(old, new) -> dict:
   for f in ARCHITECTURE:
     a, b = old.get(f), new.get(f)
     if f == 'drops':  # only these change what the networks' arrays are.
-      a, b = ((o.drops.mask_channel > 0, bool(o.drops.ring_bias)) for o in (old, new))
+      a, b = ((o.drops.mask_channel > 0, bool(o.drops.ring_bias),
+               bool(o.drops.range_slope)) for o in (old, new))
     if f == 'sensor':
       a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
               b.to_dict() if hasattr(b, 'to_dict') else b)

@@ -339,6 +339,41 @@ def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
     trainer.set_ring_bias(state.g_params, keep[:4])
 
 
+@pytest.mark.parametrize('model', ['dusty1', 'dusty2'])
+def test_range_slope_adds_a_slope_per_ring_in_the_pixels_own_depth(model):
+  """range_slope: the pixel logit (channel 1) gains slope[row] * (x_tilde +
+  1), x_tilde the pixel's own complete inverse depth; every other channel
+  and x_tilde itself are unchanged, the slopes start at 0 (so a new run
+  starts as without them), and no gradient reaches x_tilde through them."""
+  _, setup, state = _setup(model=model, range_slope=True, ring_bias=True)
+  _, plain, _ = _setup(model=model, ring_bias=True, init=False)
+  p = state.g_params
+  assert np.asarray(p['params']['range_slope']).tolist() == [0.0] * 16
+  z = jax.random.normal(jax.random.key(2), (3, setup.settings.latent_dim))
+  without = {'params': {k: v for k, v in p['params'].items() if k != 'range_slope'}}
+  np.testing.assert_array_equal(np.asarray(setup.generator.apply(p, z)),
+                                np.asarray(plain.generator.apply(without, z)))
+  slope = jnp.linspace(-1.0, 2.0, 16)
+  q = {'params': {**p['params'], 'range_slope': slope}}
+  base, got = np.asarray(plain.generator.apply(without, z)), np.asarray(setup.generator.apply(q, z))
+  want = base.copy()
+  want[..., 1] += np.asarray(slope)[:, None] * (np.tanh(base[..., 0]) + 1)
+  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+  # The slope's gradient is the row's sum of (x_tilde + 1); the depth
+  # channel gets none of the logit's gradient through it.
+  gs = jax.grad(lambda s: setup.generator.apply(
+      {'params': {**p['params'], 'range_slope': s}}, z)[..., 1].sum())(slope)
+  np.testing.assert_allclose(np.asarray(gs), (np.tanh(base[..., 0]) + 1).sum(axis=(0, 2)),
+                             rtol=1e-4)
+  dlogit = lambda params: jax.grad(lambda b: setup.generator.apply(
+      {'params': {**params, 'head_bias': b}}, z)[..., 1].sum())(params['head_bias'])
+  np.testing.assert_array_equal(np.asarray(dlogit(q['params']))[0], 0.0)
+  # It changes the networks' arrays, so a run cannot resume across it.
+  a, b = tiny_config(), tiny_config()
+  b.drops.range_slope = True
+  assert 'drops' in configs.architecture_diff(a, b)
+
+
 def test_mask_lr_scales_only_the_measurability_head():
   updates = {'params': {'head': {'kernel': jnp.ones((4, 4, 3, 2))},
                         'head_bias': jnp.ones((2,)), 'up1_bias': jnp.ones((5,))}}
@@ -404,7 +439,7 @@ def test_bad_drop_options_name_the_field(field, value):
 
 
 @pytest.mark.parametrize('field,value', [('rate_weight', 1.0), ('ring_bias', True),
-                                         ('far_weight', 1.0)])
+                                         ('far_weight', 1.0), ('range_slope', True)])
 def test_baseline_refuses_mask_options(field, value):
   c = tiny_config(model='baseline')
   c.drops[field] = value
