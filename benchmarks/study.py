@@ -44,7 +44,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug', 'dusty1_drops', 'dusty2_drops',
           'dusty1_rangedrops', 'dusty2_rangedrops', 'dusty1_headdrops', 'dusty2_headdrops',
           'dusty1_detdrops', 'dusty2_detdrops', 'dusty1_dipdrops', 'dusty2_dipdrops',
-          'dusty1_peakdrops')
+          'dusty1_peakdrops', 'dusty1_fardrops')
 TRADE_RUN = 'dusty1'  # the run whose inversion time vs quality (trade) is measured
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_noaug': 'DUSty-I, no DiffAugment',
@@ -57,7 +57,8 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty2_detdrops': 'DUSty-II, drops by ring and range, mask detached',
           'dusty1_dipdrops': 'DUSty-I, mask detached, dips filled',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled',
-          'dusty1_peakdrops': 'DUSty-I, mask detached, dips filled, peaks held'}
+          'dusty1_peakdrops': 'DUSty-I, mask detached, dips filled, peaks held',
+          'dusty1_fardrops': 'DUSty-I, peaks held, far returns held'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
 EXPORT_NAMES = {'dusty1_peakdrops': 'sim-dusty1', 'dusty1_dipdrops': 'sim-dusty1-dips',
                 'dusty1_detdrops': 'sim-dusty1-detached',
@@ -565,8 +566,8 @@ def main(argv=None):
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   restoration_file = picture_restoration(a.workdir, params_by_model,
                                          os.path.join(a.out, 'study_restoration.png'))
-  variant = next((m for m in ('dusty1_peakdrops', 'dusty1_dipdrops', 'dusty1_detdrops',
-                              'dusty1_headdrops', 'dusty1_rangedrops', 'dusty1_drops')
+  variant = next((m for m in ('dusty1_fardrops', 'dusty1_peakdrops', 'dusty1_dipdrops',
+                              'dusty1_detdrops', 'dusty1_headdrops', 'dusty1_rangedrops', 'dusty1_drops')
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
