@@ -60,7 +60,8 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_peakdrops': 'DUSty-I, mask detached, dips filled, peaks held',
           'dusty1_fardrops': 'DUSty-I, peaks held, far returns held'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
-EXPORT_NAMES = {'dusty1_peakdrops': 'sim-dusty1', 'dusty1_dipdrops': 'sim-dusty1-dips',
+EXPORT_NAMES = {'dusty1_fardrops': 'sim-dusty1', 'dusty1_peakdrops': 'sim-dusty1-peaks',
+                'dusty1_dipdrops': 'sim-dusty1-dips',
                 'dusty1_detdrops': 'sim-dusty1-detached',
                 'dusty1_drops': 'sim-dusty1-channel', 'dusty2_dipdrops': 'sim-dusty2',
                 'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
@@ -437,8 +438,10 @@ def report(results, trade_result, trade_model, train_seconds, a, machine, kitti_
       ' the authors\' training otherwise (eq-lr constants, R1 every step, their'
       ' DiffAugment).',
       '',
-      'Training time: ' + ', '.join(f'{LABELS[m]} {s / 60:.1f} min'
-                                    for m, s in train_seconds.items()) + '.',
+      ('Training time: ' + ', '.join(f'{LABELS[m]} {s / 60:.1f} min'
+                                     for m, s in train_seconds.items()) + '.'
+       if train_seconds else
+       'Training time: not recorded (the runs were trained outside this script).'),
       '',
   ]
   if a.from_pretrained:
