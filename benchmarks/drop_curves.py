@@ -39,7 +39,7 @@ def load_runs(results: str = RESULTS) -> dict:
 
 def plot(runs: dict, out: str):
   plt = common.pyplot()
-  fig, (ax_rate, ax_logit) = plt.subplots(1, 2, figsize=(13, 4.2))
+  fig, (ax_rate, ax_logit) = plt.subplots(1, 2, figsize=(13, 6.4))
   real = []
   for i, (name, r) in enumerate(runs.items()):
     colour = plt.cm.tab20(i % 20)  # more runs than the default cycle's 10 colours
@@ -52,10 +52,12 @@ def plot(runs: dict, out: str):
   ax_rate.axhline(sum(real) / len(real), color='k', linestyle=':', label='real scans')
   ax_rate.set(yscale='log', xlabel='training step (batch 16)',
               ylabel='drop rate of generated scans (G, training batch)')
-  ax_rate.legend(fontsize=8)
+  # Below both panels, in columns: there are too many runs to fit inside one.
+  handles, labels = ax_rate.get_legend_handles_labels()
+  fig.legend(handles, labels, loc='lower center', ncol=4, fontsize=7, frameon=False)
   ax_logit.set(xlabel='training step (batch 16)', ylabel='D logits: real (solid), fake (dashed)')
   fig.suptitle('Study-length CPU runs (latent 128, channels 16..128): drop rate over training')
-  fig.tight_layout()
+  fig.tight_layout(rect=(0, 0.2, 1, 1))
   fig.savefig(out, dpi=110)
   print(f'wrote {out}')
 
