@@ -100,6 +100,8 @@ def drop_defaults() -> ml_collections.ConfigDict:
                           # mean height of its peaks (in front of both)
   d.far_weight = 0.0      # G: + weight x mean over rings of (share of its
                           # pixels that are returns beyond FAR_M - real's)^2
+  d.rate_skip_far = False # ring_depth: the cells beyond 40 m weigh 0 (far_weight
+                          # alone sets the far keep rate)
   d.range_slope = False   # G: a learned slope per ring of the measurability
                           # logit in the pixel's own x_tilde, started at 0
   d.ring_bias = False     # G: a learned measurability offset per ring, started
@@ -178,6 +180,8 @@ def validate(c) -> None:
   need_drop(d.rate_by in ('image', 'ring', 'ring_depth'), 'rate_by',
             "must be 'image', 'ring' or 'ring_depth'")
   need_drop(d.rate_shrink == 0 or d.rate_by == 'ring_depth', 'rate_shrink',
+            f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
+  need_drop(not d.rate_skip_far or d.rate_by == 'ring_depth', 'rate_skip_far',
             f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
   need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
             'acts only on a rate term: set drops.rate_weight > 0')

@@ -117,6 +117,8 @@ class DropOptions:
     the term moves drops, not surfaces. The scans' far structure (sky-like
     surfaces the sensor hardly returns) otherwise comes back as returns:
     the synthesis MMD gap lies there (benchmarks/far_returns.py).
+    ``rate_skip_far``: the ring_depth rate term leaves out its cells beyond
+    FAR_M, whose high real keep rate otherwise holds far regions kept.
   * ``ring_bias`` (config drops.ring_bias; it is part of the model, so it
     lives in ModelSettings, not here): G's pixel measurability gets a
     learned logit offset per ring, started at the training data's keep rate
@@ -137,6 +139,7 @@ class DropOptions:
   dip_weight: float = 0.0
   peak_weight: float = 0.0
   far_weight: float = 0.0
+  rate_skip_far: bool = False
 
   @classmethod
   def from_config(cls, config) -> 'DropOptions':
@@ -149,7 +152,8 @@ class DropOptions:
                rate_head_only=bool(d.rate_head_only),
                mask_detached=bool(d.mask_detached),
                depth_weight=float(d.depth_weight), dip_weight=float(d.dip_weight),
-               peak_weight=float(d.peak_weight), far_weight=float(d.far_weight))
+               peak_weight=float(d.peak_weight), far_weight=float(d.far_weight),
+               rate_skip_far=bool(d.rate_skip_far))
 
   @property
   def d_sees_mask(self) -> bool:
@@ -501,7 +505,7 @@ def neighbour_depth_bin(scan, keep, sensor: SensorSpec, edges=RATE_DEPTH_EDGES):
 
 
 def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int,
-                      shrink: float = 0.0, groups: int = 1, axis_name=None):
+                      shrink: float = 0.0, groups: int = 1, axis_name=None, counted=None):
   """The squared gap between the generated and the real keep rate of each
   cell of ``cells`` / ``real_cells`` (ints in [0, num_cells): one per
   pixel), weighted by the generated pixels in the cell, so each generated
@@ -514,6 +518,8 @@ def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int,
   its group's rate rather than to a noisy 0 or 1. The cells form ``groups``
   consecutive equal blocks (for ring_depth: the rings). With ``axis_name``
   the tallies are the global batch's (summed over the devices).
+  ``counted``: (num_cells,) bools; the cells it marks False weigh 0 (their
+  pixels still count towards their group's rate).
   """
   flat = lambda a: a.reshape(-1)
   count = lambda c, w: _psum(jax.ops.segment_sum(flat(w), flat(c), num_cells), axis_name)
@@ -530,6 +536,8 @@ def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int,
   else:
     real_rate = kept_real / jnp.maximum(n_real, 1.0)
     weight = jnp.where(n_real > 0, n_fake, 0.0)
+  if counted is not None:
+    weight = jnp.where(counted, weight, 0.0)
   return jnp.sum(weight * jnp.square(fake_rate - real_rate)) / jnp.maximum(weight.sum(), 1.0)
 
 
@@ -544,20 +552,27 @@ def ring_depth_cells(scan, keep, sensor: SensorSpec):
 
 
 def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, shrink: float = 0.0,
-                            axis_name=None, keep=None):
+                            axis_name=None, keep=None, skip_far: bool = False):
   """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
   cells, each cell's target shrunk towards its ring's rate by ``shrink``.
   ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are not
   differentiated. The real rates are the training batch's (with
   ``axis_name``, summed over the devices): cells the batch barely fills give
   noisy targets, which ``shrink`` calms. ``keep``: the generated keep values
-  to differentiate (default: the mask ``fake[1]``, which bins the cells)."""
+  to differentiate (default: the mask ``fake[1]``, which bins the cells).
+  ``skip_far``: the cells whose depth bin lies beyond FAR_M weigh 0, so
+  far_weight's term alone sets how often far pixels return."""
   cells = lambda scan, keep: ring_depth_cells(lax.stop_gradient(scan),
                                               lax.stop_gradient(keep) > 0.5, sensor)
   h = fake[0].shape[1]
   keep = fake[1] if keep is None else keep
+  counted = None
+  if skip_far:  # bin b >= 1 starts at edges[b - 2] (bin 1 at 0 m)
+    starts = (0.0,) + RATE_DEPTH_EDGES
+    near = np.array([True] + [starts[b - 1] < FAR_M for b in range(1, RATE_DEPTH_BINS)])
+    counted = jnp.asarray(np.tile(near, h))
   return cell_rate_penalty(keep, real[1], cells(*fake), cells(*real),
-                           h * RATE_DEPTH_BINS, shrink, h, axis_name)
+                           h * RATE_DEPTH_BINS, shrink, h, axis_name, counted)
 
 
 def d_step(setup: Setup, d_params, d_opt, real, fake, keys, r1_now=True,
@@ -629,7 +644,7 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
     keep = keep()
     if setup.drops.rate_by == 'ring_depth':
       penalty = ring_depth_rate_penalty(setup.sensor, view, real, setup.drops.rate_shrink,
-                                        axis_name, keep)
+                                        axis_name, keep, setup.drops.rate_skip_far)
     else:
       penalty = rate_penalty(setup.drops, keep, real[1], axis_name)
     return total + setup.drops.rate_weight * penalty, adv

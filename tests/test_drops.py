@@ -224,6 +224,11 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
   assert (g[..., 2:14] < 0).all() and (g[..., 18:30] > 0).all()
   ring = trainer.rate_penalty(trainer.DropOptions(rate_by='ring'), fake_keep, real[1])
   assert float(ring) == 0.0
+  # rate_skip_far: the cells beyond 40 m (here the far half, at 50 m) weigh
+  # 0, so the far pixels get no gradient; the near ones are still pulled up.
+  skip = lambda k: trainer.ring_depth_rate_penalty(sensor, (fake_scan, k), real, skip_far=True)
+  g_skip = np.asarray(jax.grad(skip)(fake_keep))
+  assert (g_skip[..., 18:30] == 0).all() and (g_skip[..., 2:14] < 0).all()
   # Drops at another drop constant (config drop_const) change nothing.
   at = lambda x, k, c: jnp.where(k > 0, x, c)
   moved = trainer.ring_depth_rate_penalty(
@@ -429,7 +434,7 @@ def test_mask_lr_zero_freezes_the_measurability_head():
                                          ('rate_shrink', -1.0), ('rate_shrink', 5.0),
                                          ('rate_head_only', True), ('depth_weight', -1.0),
                                          ('dip_weight', -1.0), ('peak_weight', -1.0),
-                                         ('far_weight', -1.0)])
+                                         ('far_weight', -1.0), ('rate_skip_far', True)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
   c.drops[field] = value  # rate_shrink with rate_by='image', rate_head_only
