@@ -570,7 +570,8 @@ def main(argv=None):
   restoration_file = picture_restoration(a.workdir, params_by_model,
                                          os.path.join(a.out, 'study_restoration.png'))
   variant = next((m for m in ('dusty1_fardrops', 'dusty1_peakdrops', 'dusty1_dipdrops',
-                              'dusty1_detdrops', 'dusty1_headdrops', 'dusty1_rangedrops', 'dusty1_drops')
+                              'dusty1_detdrops', 'dusty1_headdrops', 'dusty1_rangedrops',
+                              'dusty1_drops')
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))

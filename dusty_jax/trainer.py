@@ -567,9 +567,8 @@ def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, shrink: float = 0.0,
   h = fake[0].shape[1]
   keep = fake[1] if keep is None else keep
   counted = None
-  if skip_far:  # bin b >= 1 starts at edges[b - 2] (bin 1 at 0 m)
-    starts = (0.0,) + RATE_DEPTH_EDGES
-    near = np.array([True] + [starts[b - 1] < FAR_M for b in range(1, RATE_DEPTH_BINS)])
+  if skip_far:  # bin 0 (no returned neighbour), then bins 1.. from 0 m, edges[0], ...
+    near = [True] + [start < FAR_M for start in (0.0,) + RATE_DEPTH_EDGES]
     counted = jnp.asarray(np.tile(near, h))
   return cell_rate_penalty(keep, real[1], cells(*fake), cells(*real),
                            h * RATE_DEPTH_BINS, shrink, h, axis_name, counted)
@@ -635,13 +634,14 @@ def g_step(setup: Setup, g_params, g_opt, d_params, fake, fake_vjp, key,
       total = total + setup.drops.dip_weight * dip_penalty(x, axis_name)
     if setup.drops.peak_weight > 0:
       total = total + setup.drops.peak_weight * peak_penalty(x, x_real, axis_name)
-    keep = lambda: scan[2] if setup.drops.rate_head_only else scan[1]
+    keep = None  # the keep values the drop terms differentiate
+    if isinstance(scan, tuple):
+      keep = scan[2] if setup.drops.rate_head_only else scan[1]
     if setup.drops.far_weight > 0:  # x_tilde is the last of the tuple
       total = total + setup.drops.far_weight * far_penalty(
-          setup.sensor, keep(), scan[-1], real[0], axis_name)
+          setup.sensor, keep, scan[-1], real[0], axis_name)
     if setup.drops.rate_weight == 0:
       return total, adv
-    keep = keep()
     if setup.drops.rate_by == 'ring_depth':
       penalty = ring_depth_rate_penalty(setup.sensor, view, real, setup.drops.rate_shrink,
                                         axis_name, keep, setup.drops.rate_skip_far)
