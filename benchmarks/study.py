@@ -44,7 +44,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug', 'dusty1_drops', 'dusty2_drops',
           'dusty1_rangedrops', 'dusty2_rangedrops', 'dusty1_headdrops', 'dusty2_headdrops',
           'dusty1_detdrops', 'dusty2_detdrops', 'dusty1_dipdrops', 'dusty2_dipdrops',
-          'dusty1_peakdrops', 'dusty1_fardrops')
+          'dusty1_peakdrops', 'dusty1_fardrops', 'dusty2_fardrops')
 TRADE_RUN = 'dusty1'  # the run whose inversion time vs quality (trade) is measured
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_noaug': 'DUSty-I, no DiffAugment',
@@ -58,7 +58,8 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_dipdrops': 'DUSty-I, mask detached, dips filled',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled',
           'dusty1_peakdrops': 'DUSty-I, mask detached, dips filled, peaks held',
-          'dusty1_fardrops': 'DUSty-I, peaks held, far returns held'}
+          'dusty1_fardrops': 'DUSty-I, peaks held, far returns held',
+          'dusty2_fardrops': 'DUSty-II, peaks held, far returns held'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
 EXPORT_NAMES = {'dusty1_fardrops': 'sim-dusty1', 'dusty1_peakdrops': 'sim-dusty1-peaks',
                 'dusty1_dipdrops': 'sim-dusty1-dips',

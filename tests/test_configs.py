@@ -19,7 +19,7 @@ def test_every_experiment_config_is_complete():
   configs.validate(tiny_config())
   for name in ('baseline', 'dusty1', 'dusty2_drops', 'dusty1_rangedrops', 'dusty1_headdrops',
                'dusty1_detdrops', 'dusty2_detdrops', 'dusty1_dipdrops', 'dusty1_peakdrops',
-               'dusty1_fardrops'):
+               'dusty1_fardrops', 'dusty2_fardrops'):
     configs.validate(configs.study(name))
 
 
