@@ -2,7 +2,7 @@
 
     python benchmarks/train_step.py [--scales study,paper] [--impls matmul]
         [--variants authors] [--invert 1,32] [--authors-dir PATH [--authors-amp]]
-        [--rounds N]
+        [--rounds N] [--cpu-devices N]
 
 For each scale (``paper``: latent 512, channels 64..512, batch 32; ``study``:
 the CPU study's latent 128, channels 16..128, batch 16; both 64x256), each
@@ -19,7 +19,10 @@ this repository, and torch installed), the authors' step and inversion run
 right after ours in the same run (benchmarks/authors_step.py, in a
 subprocess), and the ratios ours / theirs are printed; ``--rounds N`` times
 ours then theirs N times per scale and prints each round's ratio and the
-median of them, which cancels the machine's drift between rounds. Results go to
+median of them, which cancels the machine's drift between rounds. On a CPU
+the step runs on the devices the trainer gives it (parallel.use_cpu_cores:
+up to two per core, shards of 4 or more) unless ``--cpu-devices`` or
+XLA_FLAGS' device count says otherwise; inversion runs on one. Results go to
 benchmarks/results/train_step.json (``--out``). Compare figures from one
 run only: shared machines are noisy.
 """
@@ -77,7 +80,7 @@ def time_step(c, sensor, repeats):
   try:
     cost = step.lower(state, x, key).compile().cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    flops = float(cost.get('flops', float('nan')))
+    flops = float(cost.get('flops', float('nan'))) * mesh.size  # XLA counts per device
   except Exception as e:  # cost analysis is best effort on some backends.
     print(f'  (no XLA cost analysis: {e})')
 
@@ -157,13 +160,20 @@ def main():
                  help='times ours then theirs, per scale; the ratio is per round')
   p.add_argument('--authors-dir', default='')
   p.add_argument('--authors-python', default=sys.executable)
-  p.add_argument('--authors-device', default='cuda' if jax.default_backend() == 'gpu'
-                 else 'cpu')
+  p.add_argument('--authors-device', default='',
+                 help="cuda or cpu; default: cuda where JAX's backend is a GPU")
   p.add_argument('--authors-amp', action='store_true',
                  help="their mixed precision (their config's default on a GPU)")
   p.add_argument('--authors-threads', type=int, default=0)
+  p.add_argument('--cpu-devices', type=int, default=0,
+                 help="CPU devices; 0: the library's choice (parallel.use_cpu_cores)")
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'train_step.json'))
   a = p.parse_args()
+  if a.cpu_devices:  # before JAX's first operation, as the trainer does.
+    jax.config.update('jax_num_cpu_devices', a.cpu_devices)
+  else:
+    parallel.use_cpu_cores(min(SCALES[s]['batch_size'] for s in a.scales.split(',')))
+  a.authors_device = a.authors_device or ('cuda' if jax.default_backend() == 'gpu' else 'cpu')
   sensor = get_sensor('kitti')
   info = common.print_banner()
   peak = matmul_peak()

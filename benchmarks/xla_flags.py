@@ -39,6 +39,12 @@ SETS = {
                                '--xla_cpu_prefer_vector_width=512'),
     'onednn_concurrency': ('--xla_cpu_use_onednn=true '
                            '--xla_cpu_enable_concurrency_optimized_scheduler=true'),
+    # CPU devices for the data-parallel step ('default': the library's
+    # choice, parallel.use_cpu_cores: up to two per core, shards of 4 or more).
+    'one_device': '--xla_force_host_platform_device_count=1',
+    'two_devices': '--xla_force_host_platform_device_count=2',
+    'four_devices': '--xla_force_host_platform_device_count=4',
+    'eight_devices': '--xla_force_host_platform_device_count=8',
 }
 
 

@@ -36,6 +36,52 @@ def initialize_distributed(coordinator: str | None = None,
                              process_id=process_id)
 
 
+# Measured on a 2-core CPU (README "Measured speed"): the study step is
+# fastest with 4 devices (shards of 4), slower with 8 (shards of 2).
+MIN_CPU_SHARD = 4      # examples per CPU device, at least
+CPU_DEVICES_PER_CORE = 2
+
+
+def cpu_device_count(batch_size: int, cores: int | None = None) -> int:
+  """CPU devices for a one-process run of ``batch_size``: the most, up to
+  CPU_DEVICES_PER_CORE per core, that divide the batch into shards of at
+  least MIN_CPU_SHARD examples (1 when none do)."""
+  if not cores:  # the cores this process may run on, where the OS says.
+    cores = (len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity')
+             else os.cpu_count() or 1)
+  return max([n for n in range(1, CPU_DEVICES_PER_CORE * cores + 1)
+              if batch_size % n == 0 and batch_size // n >= MIN_CPU_SHARD] or [1])
+
+
+def use_cpu_cores(batch_size: int, processes: int = 1) -> int | None:
+  """Gives XLA's CPU backend several devices for data parallelism.
+
+  One CPU device runs its program one op after another, and only the large
+  ones (the matmuls) spread over the cores: the small step's many small ops
+  leave the cores idle (README, "Measured speed"). Several devices, each
+  with its shard of the batch, run side by side (cpu_device_count says how
+  many).
+  Randomness is drawn per example, so the run draws the same numbers on any
+  number of devices. Must run before JAX's first operation. Returns the
+  count set, or None where it leaves the count alone: when the user chose
+  one (``JAX_NUM_CPU_DEVICES`` or XLA's
+  ``--xla_force_host_platform_device_count``), the backends are already up
+  with another, or the run spans several processes (their CPU collectives
+  across hosts are not measured with several devices each). On a GPU
+  machine only the unused CPU backend changes.
+  """
+  chosen = ('JAX_NUM_CPU_DEVICES' in os.environ or
+            'xla_force_host_platform_device_count' in os.environ.get('XLA_FLAGS', ''))
+  if chosen or processes > 1:
+    return None
+  n = cpu_device_count(batch_size)
+  try:
+    jax.config.update('jax_num_cpu_devices', n)
+  except RuntimeError:  # backends already initialised: leave them as they are.
+    return None
+  return n
+
+
 def data_mesh(devices=None) -> Mesh:
   return Mesh(np.asarray(devices if devices is not None else jax.devices()),
               (AXIS,))

@@ -33,6 +33,8 @@ def main(argv):
 
 
 def _train():
+  # Before JAX's first operation: several CPU devices (parallel.use_cpu_cores).
+  parallel.use_cpu_cores(FLAGS.config.batch_size, FLAGS.num_processes or 1)
   parallel.initialize_distributed(FLAGS.coordinator, FLAGS.num_processes,
                                   FLAGS.process_id)
   from dusty_jax import trainer  # after distributed init.

@@ -5,7 +5,9 @@ import os
 # Tests compile many small programs and run each briefly: XLA's backend
 # optimisation costs more than it saves there (tests/test_train_steps.py from
 # a cold cache on a 2-core VM: 46 s at level 0 against 100 s). Subprocesses
-# get the same flag (FAST_COMPILE) with one device.
+# get the same flag (FAST_COMPILE) without the forced device count: the
+# training command then picks its own (parallel.use_cpu_cores), the others
+# run on one.
 FAST_COMPILE = '--xla_backend_optimization_level=0'
 os.environ['XLA_FLAGS'] = (os.environ.get('XLA_FLAGS', '') +
                            f' --xla_force_host_platform_device_count=4 {FAST_COMPILE}').strip()

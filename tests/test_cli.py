@@ -20,7 +20,7 @@ SMOKE = os.path.join(HERE, '..', 'experiments', 'smoke.py')
 def _env(tmp_path, devices=1):
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
   if devices == 1:
-    env['XLA_FLAGS'] = FAST_COMPILE  # one device
+    env['XLA_FLAGS'] = FAST_COMPILE  # no forced count: the trainer's (use_cpu_cores)
   return env
 
 

@@ -97,6 +97,46 @@ def test_depth_penalty_on_four_devices_is_the_global_batch_s():
   assert float(alone) > 1e-3
 
 
+@pytest.mark.parametrize('batch, cores, want', [
+    (16, 2, 4), (32, 2, 4), (8, 2, 2), (4, 2, 1), (6, 2, 1), (16, 1, 2), (32, 16, 8),
+    (48, 16, 12), (24, 4, 6), (0, 2, 1)])
+def test_cpu_device_count_gives_shards_of_four_or_more_two_per_core(batch, cores, want):
+  assert parallel.cpu_device_count(batch, cores) == want
+
+
+_USE_CORES = """
+import jax
+from dusty_jax import parallel
+several_processes = parallel.use_cpu_cores(16, processes=2)
+n = parallel.use_cpu_cores(16)
+print(n, len(jax.devices()), parallel.cpu_device_count(16), parallel.use_cpu_cores(8),
+      len(jax.devices()), several_processes)
+"""
+
+
+@pytest.mark.parametrize('env, want', [
+    ({}, 'auto'),
+    ({'XLA_FLAGS': '--xla_force_host_platform_device_count=3'}, 'None 3'),
+    ({'JAX_NUM_CPU_DEVICES': '3'}, 'None 3')])
+def test_use_cpu_cores_sets_the_count_unless_the_user_chose(env, want):
+  """It sets cpu_device_count's devices before JAX's first operation, and
+  leaves alone a user's own count, a run of several processes, and backends
+  already up."""
+  base = {k: v for k, v in os.environ.items()
+          if k not in ('XLA_FLAGS', 'JAX_NUM_CPU_DEVICES')}
+  res = subprocess.run([sys.executable, '-c', _USE_CORES], env=dict(base, **env),
+                       capture_output=True, text=True, timeout=120)
+  assert res.returncode == 0, res.stderr[-3000:]
+  got = res.stdout.split()
+  assert got[5] == 'None', res.stdout  # several processes: untouched
+  # Once the backends are up, another count is refused and nothing changes.
+  assert got[4] == got[1] and got[3] in ('None', got[1]), res.stdout
+  if want == 'auto':
+    assert got[0] == got[1] == got[2], res.stdout
+  else:
+    assert ' '.join(got[:2]) == want, res.stdout
+
+
 def _run_two_processes(out):
   """Both workers' (return codes, output); a fresh free port each call."""
   with socket.socket() as s:
@@ -104,7 +144,7 @@ def _run_two_processes(out):
     port = s.getsockname()[1]
   env = dict(os.environ, PYTHONPATH=os.pathsep.join(
       [os.path.join(HERE, '..'), os.environ.get('PYTHONPATH', '')]))
-  env['XLA_FLAGS'] = FAST_COMPILE  # one device
+  env['XLA_FLAGS'] = FAST_COMPILE  # no forced count: the trainer's (use_cpu_cores)
   procs = [subprocess.Popen([sys.executable, os.path.join(HERE, 'multihost_worker.py'),
                              str(port), str(i), out], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
@@ -218,7 +258,7 @@ def test_cli_trains_with_overrides(tmp_path):
   """The command line trains with --config.FIELD overrides (its bad fields
   and missing data: test_cli.py's table)."""
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
-  env['XLA_FLAGS'] = FAST_COMPILE  # one device
+  env['XLA_FLAGS'] = FAST_COMPILE  # no forced count: the trainer's (use_cpu_cores)
   cmd = [sys.executable, '-m', 'dusty_jax.train',
          '--config', os.path.join(HERE, '..', 'experiments', 'smoke.py'),
          '--workdir', str(tmp_path / 'w')]
@@ -274,7 +314,7 @@ def test_resume_with_another_architecture_is_refused_untouched(smoke_run, tmp_pa
 
 def test_cli_config_error_is_one_line(tmp_path):
   env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
-  env['XLA_FLAGS'] = FAST_COMPILE  # one device
+  env['XLA_FLAGS'] = FAST_COMPILE  # no forced count: the trainer's (use_cpu_cores)
   res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config',
                         os.path.join(HERE, '..', 'experiments', 'smoke.py'),
                         '--workdir', str(tmp_path / 'w'), '--config.batch_size=0'],
@@ -348,7 +388,7 @@ def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, t
   runs = [str(workdir)] + [str(_damaged_copy(workdir, tmp_path / d, d))
                            for d in ('truncate', 'metadata', 'empty')]
   env = dict(os.environ)
-  env['XLA_FLAGS'] = FAST_COMPILE  # one device
+  env['XLA_FLAGS'] = FAST_COMPILE  # no forced count: the trainer's (use_cpu_cores)
   res = subprocess.run([sys.executable, '-c', LOAD_AND_RESUME] + runs, env=env,
                        capture_output=True, text=True, timeout=600,
                        cwd=os.path.join(HERE, '..'))
