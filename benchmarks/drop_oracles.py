@@ -1,0 +1,94 @@
+"""What measurability scores mean: reference maps scored like a model's.
+
+    python benchmarks/drop_oracles.py [--num 64] [--out benchmarks/results/drop_oracles.json]
+
+The study scores a model's measurability against the simulated test scans'
+observed returns (benchmarks/study.py, ``disentangle``). Three maps that use
+no model are scored here by the same function
+(``ground_truth.measurability_scores``), on the same first ``--num`` test
+scans of the study's data:
+
+  * ``truth``: the simulator's true keep probability, 1 - drop_prob: the
+    best any model can do;
+  * ``ring rate``: each ring's keep rate over the training split's observed
+    scans, the same at every pixel of a ring: what a per-ring rate alone
+    scores;
+  * ``ring x depth rate``: each (ring, depth bin) cell's keep rate over the
+    training split, the bins of trainer.RATE_DEPTH_EDGES judged on the
+    complete depth (which a generator draws as x_tilde): what the drops
+    variant's rate term asks for, and nothing within a cell.
+
+A model's AUC says where its drops go only as far as it beats these.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+
+import common
+from dusty_jax import codec, configs, trainer
+from dusty_jax.data import arrays, pipeline
+from dusty_jax.metrics import ground_truth
+from dusty_jax.sensor import get_sensor
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def cell_rates(observed, complete, sensor, edges):
+  """(H, len(edges) + 1) keep rate of the observed returns per ring and
+  bin of the complete depth (surfaces only), and the bin of each pixel."""
+  bins = np.digitize(complete, edges)
+  valid = np.asarray(codec.valid_depth(observed, sensor))
+  surface = np.asarray(codec.valid_depth(complete, sensor))
+  h, nb = observed.shape[1], len(edges) + 1
+  rates = np.ones((h, nb))
+  for r in range(h):
+    for b in range(nb):
+      cell = surface[:, r] & (bins[:, r] == b)
+      if cell.any():
+        rates[r, b] = valid[:, r][cell].mean()
+  return rates
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument('--num', type=int, default=64, help='test scans, as the study inverts')
+  p.add_argument('--out', default=os.path.join(HERE, 'results', 'drop_oracles.json'))
+  a = p.parse_args(argv)
+  common.print_banner()
+  config = configs.study('dusty1')
+  sensor = get_sensor(config.sensor.preset)
+  d = pipeline.dataset_dir(config, sensor, log=print)
+  load = lambda split, kind='': np.asarray(arrays.load_split(d, split, sensor, kind),
+                                           np.float64)
+  obs, comp, prob = (load('test', k)[:a.num] for k in ('', 'complete', 'drop_prob'))
+  train_obs, train_comp = load('train'), load('train', 'complete')
+  train_valid = np.asarray(codec.valid_depth(train_obs, sensor))
+  edges = np.asarray(trainer.RATE_DEPTH_EDGES)
+  ring = train_valid.mean(axis=(0, 2))
+  cells = cell_rates(train_obs, train_comp, sensor, edges)
+  rows = np.arange(obs.shape[1])[None, :, None]
+  maps = {
+      'truth': 1.0 - prob,
+      'ring rate': np.broadcast_to(ring[None, :, None], obs.shape),
+      'ring x depth rate': cells[rows, np.digitize(comp, edges)],
+  }
+  out = {}
+  print(f'\n{a.num} test scans; surfaces nearer than {ground_truth.NEAR_M:.0f} m for the '
+        '"near" columns')
+  print(f'{"map":20s}{"AUC":>8s}{"AUC near":>10s}{"within rings":>14s}{"ECE":>8s}')
+  for name, m in maps.items():
+    s = ground_truth.measurability_scores(sensor, m, obs, comp, prob)
+    out[name] = {k: s[k] for k in ('auc', 'auc_near', 'auc_near_within_ring', 'ece')}
+    print(f'{name:20s}{s["auc"]:8.3f}{s["auc_near"]:10.3f}'
+          f'{s["auc_near_within_ring"]:14.3f}{s["ece"]:8.3f}')
+  common.write_json(a.out, dict(num=a.num, near_m=ground_truth.NEAR_M,
+                                depth_edges_m=edges.tolist(), scores=out))
+  print(f'wrote {a.out}')
+
+
+if __name__ == '__main__':
+  main()
