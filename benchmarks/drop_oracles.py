@@ -19,6 +19,15 @@ scans of the study's data:
     variant's rate term asks for, and nothing within a cell.
 
 A model's AUC says where its drops go only as far as it beats these.
+
+    python benchmarks/drop_oracles.py --runs NAME=RUN_DIR,... [--out ...]
+
+also splits a model's shortfall in two, on the test scans whose inversion
+the study saved (``RUN_DIR/study_inversion.npz``: the first 8, inverted
+500 iterations): its measurability as inverted, against the cell rates at
+the depth bins of its own inverted x_tilde. If the cell rates at its own
+depth place the drops well, the head is what misses; if not, the depth.
+Every map is then scored on those 8 scans only.
 """
 
 from __future__ import annotations
@@ -56,8 +65,18 @@ def cell_rates(observed, complete, sensor, edges):
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument('--num', type=int, default=64, help='test scans, as the study inverts')
+  p.add_argument('--runs', default='', help="NAME=RUN_DIR,...: score the study's inversions")
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'drop_oracles.json'))
   a = p.parse_args(argv)
+  runs = dict(item.split('=', 1) for item in a.runs.split(',') if item)
+  for run in runs.values():
+    if not os.path.isfile(os.path.join(run, 'study_inversion.npz')):
+      raise SystemExit(f'error: {run}/study_inversion.npz: no such file (benchmarks/study.py '
+                       'writes it when it evaluates a run)')
+  saved = {name: np.load(os.path.join(run, 'study_inversion.npz'))
+           for name, run in runs.items()}
+  if saved:
+    a.num = min(len(v['measurability']) for v in saved.values())
   common.print_banner()
   config = configs.study('dusty1')
   sensor = get_sensor(config.sensor.preset)
@@ -76,16 +95,21 @@ def main(argv=None):
       'ring rate': np.broadcast_to(ring[None, :, None], obs.shape),
       'ring x depth rate': cells[rows, np.digitize(comp, edges)],
   }
+  for name, inv in saved.items():
+    depth = np.asarray(codec.complete_depth(inv['inv_depth'][:a.num], sensor), np.float64)
+    maps[f'{name}: as inverted'] = inv['measurability'][:a.num]
+    maps[f'{name}: cell rates at its depth'] = cells[rows, np.digitize(depth, edges)]
   out = {}
   print(f'\n{a.num} test scans; surfaces nearer than {ground_truth.NEAR_M:.0f} m for the '
         '"near" columns')
-  print(f'{"map":20s}{"AUC":>8s}{"AUC near":>10s}{"within rings":>14s}{"ECE":>8s}')
+  width = max(len(n) for n in maps) + 2
+  print(f'{"map":{width}s}{"AUC":>8s}{"AUC near":>10s}{"within rings":>14s}{"ECE":>8s}')
   for name, m in maps.items():
     s = ground_truth.measurability_scores(sensor, m, obs, comp, prob)
     out[name] = {k: s[k] for k in ('auc', 'auc_near', 'auc_near_within_ring', 'ece')}
-    print(f'{name:20s}{s["auc"]:8.3f}{s["auc_near"]:10.3f}'
+    print(f'{name:{width}s}{s["auc"]:8.3f}{s["auc_near"]:10.3f}'
           f'{s["auc_near_within_ring"]:14.3f}{s["ece"]:8.3f}')
-  common.write_json(a.out, dict(num=a.num, near_m=ground_truth.NEAR_M,
+  common.write_json(a.out, dict(num=a.num, runs=runs, near_m=ground_truth.NEAR_M,
                                 depth_edges_m=edges.tolist(), scores=out))
   print(f'wrote {a.out}')
 
