@@ -27,7 +27,11 @@ the study saved (``RUN_DIR/study_inversion.npz``: the first 8, inverted
 500 iterations): its measurability as inverted, against the cell rates at
 the depth bins of its own inverted x_tilde. If the cell rates at its own
 depth place the drops well, the head is what misses; if not, the depth.
-Every map is then scored on those 8 scans only.
+Every map is then scored on those 8 scans only. With ``--invert-steps N
+[--init encoder]`` each run's generator inverts the first ``--num`` test
+scans itself instead (evaluation.restore_batches, seed 0 as in the study):
+does a longer search, or the encoder's start, find a depth that places the
+drops better?
 """
 
 from __future__ import annotations
@@ -38,7 +42,8 @@ import os
 import numpy as np
 
 import common
-from dusty_jax import codec, configs, trainer
+import dusty_jax
+from dusty_jax import codec, configs, evaluation, trainer
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import ground_truth
 from dusty_jax.sensor import get_sensor
@@ -66,17 +71,22 @@ def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument('--num', type=int, default=64, help='test scans, as the study inverts')
   p.add_argument('--runs', default='', help="NAME=RUN_DIR,...: score the study's inversions")
+  p.add_argument('--invert-steps', type=int, default=0,
+                 help="invert with each run's generator (0: read the study's inversion)")
+  p.add_argument('--init', default='random', choices=('random', 'encoder'))
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'drop_oracles.json'))
   a = p.parse_args(argv)
   runs = dict(item.split('=', 1) for item in a.runs.split(',') if item)
-  for run in runs.values():
-    if not os.path.isfile(os.path.join(run, 'study_inversion.npz')):
-      raise SystemExit(f'error: {run}/study_inversion.npz: no such file (benchmarks/study.py '
-                       'writes it when it evaluates a run)')
-  saved = {name: np.load(os.path.join(run, 'study_inversion.npz'))
-           for name, run in runs.items()}
-  if saved:
-    a.num = min(len(v['measurability']) for v in saved.values())
+  saved = {}
+  if not a.invert_steps:
+    for run in runs.values():
+      if not os.path.isfile(os.path.join(run, 'study_inversion.npz')):
+        raise SystemExit(f'error: {run}/study_inversion.npz: no such file (benchmarks/'
+                         'study.py writes it when it evaluates a run; or use --invert-steps)')
+    saved = {name: np.load(os.path.join(run, 'study_inversion.npz'))
+             for name, run in runs.items()}
+    if saved:
+      a.num = min(len(v['measurability']) for v in saved.values())
   common.print_banner()
   config = configs.study('dusty1')
   sensor = get_sensor(config.sensor.preset)
@@ -84,6 +94,13 @@ def main(argv=None):
   load = lambda split, kind='': np.asarray(arrays.load_split(d, split, sensor, kind),
                                            np.float64)
   obs, comp, prob = (load('test', k)[:a.num] for k in ('', 'complete', 'drop_prob'))
+  for name, run in runs.items() if a.invert_steps else ():
+    params = dusty_jax.load_checkpoint(run)[0]
+    res = [b[4] for b in evaluation.restore_batches(
+        params, obs, num_steps=a.invert_steps, init=a.init, progress=True,
+        desc=f'{name}: inverting')]
+    saved[name] = {k: np.concatenate([r[k] for r in res])
+                   for k in ('inv_depth', 'measurability')}
   train_obs, train_comp = load('train'), load('train', 'complete')
   train_valid = np.asarray(codec.valid_depth(train_obs, sensor))
   edges = np.asarray(trainer.RATE_DEPTH_EDGES)
@@ -109,7 +126,8 @@ def main(argv=None):
     out[name] = {k: s[k] for k in ('auc', 'auc_near', 'auc_near_within_ring', 'ece')}
     print(f'{name:{width}s}{s["auc"]:8.3f}{s["auc_near"]:10.3f}'
           f'{s["auc_near_within_ring"]:14.3f}{s["ece"]:8.3f}')
-  common.write_json(a.out, dict(num=a.num, runs=runs, near_m=ground_truth.NEAR_M,
+  common.write_json(a.out, dict(num=a.num, runs=runs, invert_steps=a.invert_steps,
+                                init=a.init, near_m=ground_truth.NEAR_M,
                                 depth_edges_m=edges.tolist(), scores=out))
   print(f'wrote {a.out}')
 
