@@ -52,19 +52,15 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def cell_rates(observed, complete, sensor, edges):
-  """(H, len(edges) + 1) keep rate of the observed returns per ring and
-  bin of the complete depth (surfaces only), and the bin of each pixel."""
-  bins = np.digitize(complete, edges)
-  valid = np.asarray(codec.valid_depth(observed, sensor))
-  surface = np.asarray(codec.valid_depth(complete, sensor))
+  """(H, len(edges) + 1) keep rate of the observed returns per ring and bin
+  of the complete depth, over surface pixels (1 for a cell with none)."""
   h, nb = observed.shape[1], len(edges) + 1
-  rates = np.ones((h, nb))
-  for r in range(h):
-    for b in range(nb):
-      cell = surface[:, r] & (bins[:, r] == b)
-      if cell.any():
-        rates[r, b] = valid[:, r][cell].mean()
-  return rates
+  surface = np.asarray(codec.valid_depth(complete, sensor))
+  cell = (np.arange(h)[None, :, None] * nb + np.digitize(complete, edges))[surface]
+  kept = np.asarray(codec.valid_depth(observed, sensor))[surface]
+  n = np.bincount(cell, minlength=h * nb)
+  rates = np.bincount(cell, kept, minlength=h * nb) / np.maximum(n, 1)
+  return np.where(n > 0, rates, 1.0).reshape(h, nb)
 
 
 def main(argv=None):
@@ -102,9 +98,8 @@ def main(argv=None):
     saved[name] = {k: np.concatenate([r[k] for r in res])
                    for k in ('inv_depth', 'measurability')}
   train_obs, train_comp = load('train'), load('train', 'complete')
-  train_valid = np.asarray(codec.valid_depth(train_obs, sensor))
   edges = np.asarray(trainer.RATE_DEPTH_EDGES)
-  ring = train_valid.mean(axis=(0, 2))
+  ring = trainer.ring_keep_rate(train_obs, sensor, num=len(train_obs))
   cells = cell_rates(train_obs, train_comp, sensor, edges)
   rows = np.arange(obs.shape[1])[None, :, None]
   maps = {
