@@ -21,6 +21,10 @@ split's observed keep rate on the simulator's complete depth
   * ``spread``: the standard deviation of the model's table over those cells
     (a model that keeps everything has correlations of noise: read them
     with it).
+  * ``near share``: of the surface pixels in the rings where every pixel of
+    the data is a surface (no sky, no ego vehicle), the share nearer than
+    the first depth edge (5 m): does the generator draw the near objects at
+    all (the data's share is printed above the table).
 
 The table of each model and the data's go to a PNG beside the JSON
 (``--out``, default benchmarks/results/drop_cells.json).
@@ -121,10 +125,15 @@ def main(argv=None):
   p.add_argument('--min-pixels', type=int, default=200, help='pixels a cell needs, each side')
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'drop_cells.json'))
   a = p.parse_args(argv)
-  models = {n: dusty_jax.load_pretrained(n) for n in a.models.split(',') if n}
-  for item in (i for i in a.runs.split(',') if i):
-    name, run = item.split('=', 1)
-    models[name] = dusty_jax.load_checkpoint(run)[0]
+  try:
+    models = {n: dusty_jax.load_pretrained(n) for n in a.models.split(',') if n}
+    for item in (i for i in a.runs.split(',') if i):
+      if '=' not in item:
+        raise ValueError(f'--runs {item!r}: expected NAME=RUN_DIR')
+      name, run = item.split('=', 1)
+      models[name] = dusty_jax.load_checkpoint(run)[0]
+  except (OSError, ValueError) as e:
+    raise SystemExit(f'error: {e}') from None
   common.print_banner()
   config = configs.study('dusty1')
   sensor = get_sensor(config.sensor.preset)
@@ -139,27 +148,32 @@ def main(argv=None):
   real_n = np.bincount(cells[surface], minlength=real.size).reshape(real.shape)
   real = np.where(real_n > 0, real, np.nan)
   tables, out = {f'data ({len(obs)} training scans)': real}, {}
+  solid = surface.all(axis=(0, 2))  # rings where every pixel of the data is a surface
+  near_share = lambda n: float(n[solid, 0].sum() / max(n[solid].sum(), 1))
   filled = real_n >= a.min_pixels
   filled[:, near_bins:] = False
   real_spread = float(real[filled].std())
   print(f'{len(obs)} training scans; {a.num} samples per model; cells nearer than '
         f'{ground_truth.NEAR_M:.0f} m with >= {a.min_pixels} pixels each side; the data '
-        f"table's spread over its own: {real_spread:.4f}")
+        f"table's spread over its own: {real_spread:.4f}; its near share (rings "
+        f"{np.flatnonzero(solid).min()}-{np.flatnonzero(solid).max()}): {near_share(real_n):.4f}")
   print(f'{"model":24s}{"corr all":>10s}{"corr within rings":>19s}{"slope agree":>13s}'
-        f'{"cells":>7s}{"mean keep":>11s}{"spread":>9s}')
+        f'{"cells":>7s}{"mean keep":>11s}{"spread":>9s}{"near share":>12s}')
   for name, params in models.items():
     gen, gen_n = sample_cells(params, sensor, edges, a.num)
     s = agreement(gen, gen_n, real, real_n, near_bins, a.min_pixels)
     s['mean_keep_surface'] = float(np.nansum(gen * gen_n) / gen_n.sum())
+    s['near_share'] = near_share(gen_n)
     out[name] = dict(s, table=np.round(gen, 4).tolist(), pixels=gen_n.astype(int).tolist())
     tables[name] = gen
     print(f'{name:24s}{s["corr_all"]:10.3f}{s["corr_within_rings"]:19.3f}'
           f'{s["slope_agree"]:13.2f}{s["cells"]:7d}{s["mean_keep_surface"]:11.3f}'
-          f'{s["spread"]:9.4f}')
+          f'{s["spread"]:9.4f}{s["near_share"]:12.4f}')
   png = os.path.splitext(a.out)[0] + '.png'
   plot(png, tables, edges)
   common.write_json(a.out, dict(num=a.num, min_pixels=a.min_pixels, near_m=ground_truth.NEAR_M,
                                 depth_edges_m=edges.tolist(), data_spread=real_spread,
+                                data_near_share=near_share(real_n),
                                 data_table=np.round(
                                     real, 4).tolist(), data_pixels=real_n.tolist(),
                                 models=out))
