@@ -40,7 +40,7 @@ import numpy as np
 
 import common
 import dusty_jax
-from drop_oracles import cell_rates
+from drop_oracles import cell_rates, cell_sums
 from dusty_jax import codec, configs, sampling, trainer
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import ground_truth
@@ -52,20 +52,15 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def sample_cells(params, sensor, edges, num, batch=64, seed=0):
   """(mean measurability, pixel count), each (H, len(edges) + 1), of ``num``
   samples' surface pixels by ring and bin of their own complete depth."""
-  h, nb = sensor.height, len(edges) + 1
-  total, count = np.zeros(h * nb), np.zeros(h * nb)
-  rows = np.arange(h)[None, :, None]
+  shape = (sensor.height, len(edges) + 1)
+  total, count = np.zeros(shape), np.zeros(shape, np.int64)
   key = jax.random.key(seed)
   for i in range(0, num, batch):
     out = sampling.sample(params, jax.random.fold_in(key, i), min(batch, num - i))
     depth = np.asarray(codec.complete_depth(out['inv_depth'], sensor), np.float64)
-    surface = np.asarray(codec.valid_depth(depth, sensor))
-    cell = np.broadcast_to(rows * nb + np.digitize(depth, edges), depth.shape)[surface]
-    total += np.bincount(cell, np.asarray(out['measurability'], np.float64)[surface],
-                         minlength=h * nb)
-    count += np.bincount(cell, minlength=h * nb)
-  mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
-  return mean.reshape(h, nb), count.reshape(h, nb)
+    sums, n = cell_sums(out['measurability'], depth, sensor, edges)
+    total, count = total + sums, count + n
+  return np.where(count > 0, total / np.maximum(count, 1), np.nan), count
 
 
 def agreement(gen, gen_n, real, real_n, near_bins, min_pixels):
@@ -142,13 +137,11 @@ def main(argv=None):
   edges = np.asarray(trainer.RATE_DEPTH_EDGES)
   near_bins = int(np.searchsorted(edges, ground_truth.NEAR_M)) + 1
   obs, comp = load(), load('complete')
-  real = cell_rates(obs, comp, sensor, edges)
-  surface = np.asarray(codec.valid_depth(comp, sensor))
-  cells = np.arange(sensor.height)[None, :, None] * len(real[0]) + np.digitize(comp, edges)
-  real_n = np.bincount(cells[surface], minlength=real.size).reshape(real.shape)
+  real, real_n = cell_rates(obs, comp, sensor, edges)
   real = np.where(real_n > 0, real, np.nan)
   tables, out = {f'data ({len(obs)} training scans)': real}, {}
-  solid = surface.all(axis=(0, 2))  # rings where every pixel of the data is a surface
+  # Rings where every pixel of the data is a surface.
+  solid = np.asarray(codec.valid_depth(comp, sensor)).all(axis=(0, 2))
   near_share = lambda n: float(n[solid, 0].sum() / max(n[solid].sum(), 1))
   filled = real_n >= a.min_pixels
   filled[:, near_bins:] = False
@@ -174,8 +167,8 @@ def main(argv=None):
   common.write_json(a.out, dict(num=a.num, min_pixels=a.min_pixels, near_m=ground_truth.NEAR_M,
                                 depth_edges_m=edges.tolist(), data_spread=real_spread,
                                 data_near_share=near_share(real_n),
-                                data_table=np.round(
-                                    real, 4).tolist(), data_pixels=real_n.tolist(),
+                                data_table=np.round(real, 4).tolist(),
+                                data_pixels=real_n.tolist(),
                                 models=out))
   print(f'wrote {a.out} and {png}')
 

@@ -51,16 +51,23 @@ from dusty_jax.sensor import get_sensor
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
+def cell_sums(values, depth, sensor, edges):
+  """(sum of ``values``, pixel count), each (H, len(edges) + 1), over the
+  surface pixels of ``depth`` (B, H, W metres) by ring and depth bin."""
+  h, nb = depth.shape[1], len(edges) + 1
+  surface = np.asarray(codec.valid_depth(depth, sensor))
+  cell = np.broadcast_to(np.arange(h)[None, :, None] * nb + np.digitize(depth, edges),
+                         depth.shape)[surface]
+  sums = np.bincount(cell, np.asarray(values, np.float64)[surface], minlength=h * nb)
+  return sums.reshape(h, nb), np.bincount(cell, minlength=h * nb).reshape(h, nb)
+
+
 def cell_rates(observed, complete, sensor, edges):
-  """(H, len(edges) + 1) keep rate of the observed returns per ring and bin
-  of the complete depth, over surface pixels (1 for a cell with none)."""
-  h, nb = observed.shape[1], len(edges) + 1
-  surface = np.asarray(codec.valid_depth(complete, sensor))
-  cell = (np.arange(h)[None, :, None] * nb + np.digitize(complete, edges))[surface]
-  kept = np.asarray(codec.valid_depth(observed, sensor))[surface]
-  n = np.bincount(cell, minlength=h * nb)
-  rates = np.bincount(cell, kept, minlength=h * nb) / np.maximum(n, 1)
-  return np.where(n > 0, rates, 1.0).reshape(h, nb)
+  """(rates, counts): the (H, len(edges) + 1) keep rate of the observed
+  returns per ring and bin of the complete depth, over surface pixels (1 for
+  a cell with none), and each cell's surface pixels."""
+  kept, n = cell_sums(codec.valid_depth(observed, sensor), complete, sensor, edges)
+  return np.where(n > 0, kept / np.maximum(n, 1), 1.0), n
 
 
 def main(argv=None):
@@ -100,7 +107,7 @@ def main(argv=None):
   train_obs, train_comp = load('train'), load('train', 'complete')
   edges = np.asarray(trainer.RATE_DEPTH_EDGES)
   ring = trainer.ring_keep_rate(train_obs, sensor, num=len(train_obs))
-  cells = cell_rates(train_obs, train_comp, sensor, edges)
+  cells, _ = cell_rates(train_obs, train_comp, sensor, edges)
   rows = np.arange(obs.shape[1])[None, :, None]
   maps = {
       'truth': 1.0 - prob,
