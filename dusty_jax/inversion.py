@@ -35,19 +35,28 @@ NOISE_SCALE = 0.05
 NOISE_RAMP = 0.75
 
 
-def lr_schedule(num_steps: int, lr: float = LR):
+def lr_schedule(num_steps, lr: float = LR):
   """StyleGAN2's projector schedule: linear ramp-up, flat, cosine ramp-down.
 
   Over progress t = step / num_steps: lr * min(1, t / RAMP_UP) times
   0.5 - 0.5 cos(pi min(1, (1 - t) / RAMP_DOWN)). The boundaries may fall
   between steps; the pieces meet at lr, so that is harmless.
+
+  ``num_steps`` may be traced, so that invert() compiles once for every step
+  count: the pieces are optax.linear_schedule, constant_schedule and
+  cosine_decay_schedule joined as optax.join_schedules joins them, written
+  out because those check their step counts in Python.
   """
   up = RAMP_UP * num_steps
   down = RAMP_DOWN * num_steps
-  return optax.join_schedules(
-      [optax.linear_schedule(0.0, lr, up), optax.constant_schedule(lr),
-       optax.cosine_decay_schedule(lr, down)],
-      boundaries=[up, num_steps - down])
+
+  def schedule(step):
+    ramp = lr - lr * (1 - jnp.clip(step, 0, up) / up)  # linear_schedule(0, lr, up)
+    cosine = lr * (0.5 * (1 + jnp.cos(jnp.pi * jnp.minimum(step - (num_steps - down), down)
+                                      / down)))  # cosine_decay_schedule(lr, down)
+    return jnp.where(step < num_steps - down, jnp.where(step < up, ramp, lr), cosine)
+
+  return schedule
 
 
 project = encoder_lib.project  # onto the latent sphere of radius sqrt(d)
@@ -102,8 +111,9 @@ def scan_loss(params, apply, z, target, mask, loss=objective):
 
 
 def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
+  """One scan's search of ``num_steps`` (traced: a while loop) steps."""
   kn = jax.random.split(key)[1]
-  tx = optax.adam(lr_schedule(max(num_steps, 1), lr))
+  tx = optax.adam(lr_schedule(jnp.maximum(num_steps, 1), lr))
   opt = tx.init(z)
   target = jnp.where(mask, target, 0.0)
   loss_fn = lambda z: scan_loss(params, apply, z, target, mask, loss)
@@ -117,16 +127,24 @@ def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
     updates, opt = tx.update(grad, opt, z)
     return project(optax.apply_updates(z, updates)), opt
 
-  if num_steps:  # 0 steps: the start is the answer.
-    z, _ = jax.lax.fori_loop(0, num_steps, body, (z, opt))
+  # 0 steps: the start is the answer.
+  z, _ = jax.lax.fori_loop(0, num_steps, body, (z, opt))
   return z, loss_fn(z)
 
 
-@functools.partial(jax.jit, static_argnames=('start', 'num_steps', 'impl', 'loss'))
-def _invert(params, scans, masks, z0, keys, start, num_steps, lr, impl, loss):
-  """``start``: a name in STARTS, or None to start from ``z0`` (projected)."""
+@functools.partial(jax.jit, static_argnames=('start',))
+def _start(params, scans, masks, z0, keys, start):
+  """Where each search starts: ``start`` a name in STARTS, or None for the
+  given latents ``z0`` (projected). Apart from the search, so that a new
+  start compiles this small program only."""
+  return project(z0) if start is None else STARTS[start](params, scans, masks, keys)
+
+
+@functools.partial(jax.jit, static_argnames=('impl', 'loss'))
+def _search(params, scans, masks, z0, keys, num_steps, lr, impl, loss):
+  """The searches from ``z0`` and their re-rendered results. ``num_steps``
+  and ``lr`` are traced: one compilation serves every step count."""
   apply = params.module(impl).apply
-  z0 = project(z0) if start is None else STARTS[start](params, scans, masks, keys)
   z, final = jax.vmap(
       lambda t, m, z, k: _search_one(params, apply, t, m, z, k, num_steps, lr, loss))(
           scans, masks, z0, keys)
@@ -252,7 +270,8 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
   if single and not isinstance(init, str):
     init = jnp.asarray(init)[None]
   start, z0 = _check_init(params, init, len(scans))
-  out = _invert(params, scans, masks, z0, keys, start, num_steps, lr, impl, loss)
+  z0 = _start(params, scans, masks, z0, keys, start)
+  out = _search(params, scans, masks, z0, keys, jnp.int32(num_steps), lr, impl, loss)
   if single:
     out = jax.tree.map(lambda v: v[0], out)
   return out

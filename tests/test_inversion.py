@@ -9,6 +9,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import dusty_jax
@@ -145,6 +146,12 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
   assert 'nan' not in r.stdout.lower()  # the complete-depth table has no CD: n/a
   gt = json.load(open(out / 's' / 'metrics.json'))['ground_truth']
   assert 0 <= gt['ece'] <= 1 and np.isfinite(gt['complete_depth']['abs_rel'])
+  # Drop placement beside the training split's per-ring table, which knows
+  # nothing within a ring.
+  assert gt['placement']['ece'] == pytest.approx(gt['ece'])
+  assert gt['ring_table']['auc_near_within_ring'] in (0.5,) or np.isnan(
+      gt['ring_table']['auc_near_within_ring'])
+  assert 'keep rate per ring: AUC' in r.stdout
   assert (out / 's' / 'reliability.png').is_file()
   bad = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
                         '--input', str(tmp_path / 'missing.bin')], env=env,
@@ -446,3 +453,74 @@ def test_a_scan_with_nothing_to_compare_leaves_no_nan_in_the_table(gen):
                                  'y': {'abs_rel': [np.nan, 0.5]}}, reconstruction.COLUMNS)
   assert 'nan' not in table.lower() and table.count('n/a') == 1 + 7
   assert '0.500' in table
+
+
+def _old_static_search(params, scan, key, num_steps, lr=inversion.LR):
+  """The search as invert() ran it with num_steps static (before it was
+  traced): optax's schedules joined by optax.join_schedules, a plain Python
+  loop of the step, from the random start. Returns the latent (d,)."""
+  n = max(num_steps, 1)
+  up, down = inversion.RAMP_UP * n, inversion.RAMP_DOWN * n
+  schedule = optax.join_schedules(
+      [optax.linear_schedule(0.0, lr, up), optax.constant_schedule(lr),
+       optax.cosine_decay_schedule(lr, down)], boundaries=[up, n - down])
+  tx = optax.adam(schedule)
+  mask = inversion.target_mask(scan)
+  target = jnp.where(mask, scan, 0.0)
+  apply = params.module().apply
+  kz, kn = jax.random.split(key)
+  z = inversion.project(jax.random.normal(kz, (params.latent_dim,)))
+  opt = tx.init(z)
+
+  @jax.jit
+  def step(i, z, opt):
+    t = i / num_steps
+    strength = inversion.NOISE_SCALE * jnp.maximum(0.0, 1.0 - t / inversion.NOISE_RAMP) ** 2
+    noise = strength * jax.random.normal(jax.random.fold_in(kn, i), z.shape)
+    grad = jax.grad(lambda z: inversion.scan_loss(params, apply, z + noise, target, mask))(z)
+    updates, opt = tx.update(grad, opt, z)
+    return inversion.project(optax.apply_updates(z, updates)), opt
+
+  for i in range(num_steps):
+    z, opt = step(i, z, opt)
+  return np.asarray(z)
+
+
+@pytest.mark.parametrize('num_steps', [7, 25])
+def test_traced_step_count_follows_the_old_static_search(num_steps):
+  """num_steps is a traced loop bound now; each scan's latent is the one the
+  old static loop reached, and the schedule is optax's at every step."""
+  from dusty_jax import trainer
+  from dusty_jax.sensor import tiny_sensor
+  from train_helpers import tiny_config
+  sensor = tiny_sensor(16, 64)
+  setup = trainer.make_setup(tiny_config(), sensor)
+  state = trainer.init_state(setup, jax.random.key(0))
+  params = trainer.generator_params(setup, state.g_params, sensor.nominal_angles())
+  scans, _ = _targets(params, n=2)
+  key = jax.random.key(3)
+  got = np.asarray(inversion.invert(params, scans, key=key, num_steps=num_steps)['latent'])
+  for i in range(2):
+    want = _old_static_search(params, scans[i], jax.random.fold_in(key, i), num_steps)
+    np.testing.assert_allclose(got[i], want, rtol=1e-4, atol=1e-4)
+  n = num_steps
+  old = optax.join_schedules(
+      [optax.linear_schedule(0.0, 0.3, inversion.RAMP_UP * n), optax.constant_schedule(0.3),
+       optax.cosine_decay_schedule(0.3, inversion.RAMP_DOWN * n)],
+      boundaries=[inversion.RAMP_UP * n, n - inversion.RAMP_DOWN * n])
+  traced = jax.jit(lambda s, n: inversion.lr_schedule(n, 0.3)(s))
+  for s in range(n + 1):
+    np.testing.assert_allclose(traced(jnp.int32(s), jnp.int32(n)), old(jnp.int32(s)),
+                               rtol=1e-6, atol=1e-9)
+
+
+def test_a_new_step_count_or_start_compiles_no_new_search(gen):
+  """The search program is compiled once per shape, whatever num_steps and
+  init are (issue 36: each used to compile again, 50-100 s on a CPU)."""
+  scans, _ = _targets(gen, n=2)
+  inversion.invert(gen, scans, num_steps=3)
+  size = inversion._search._cache_size()
+  z0 = jax.random.normal(jax.random.key(1), (2, gen.latent_dim))
+  for steps, init in ((4, 'random'), (11, 'random'), (0, 'random'), (5, z0)):
+    inversion.invert(gen, scans, num_steps=steps, init=init)
+  assert inversion._search._cache_size() == size
