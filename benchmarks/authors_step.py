@@ -21,7 +21,7 @@ With ``--train-steps N --data-dir DIR --workdir OUT`` it trains instead: their
 step on batches of DIR's training scans (a dusty_jax prepared dataset, e.g.
 the simulated one in ~/.cache/dusty_jax/synthetic/...), writing their drop
 rate and D logits to OUT/metrics.jsonl, so their training can be set beside
-ours (benchmarks/drops_screen.py --runs). That needs dusty_jax importable
+ours (benchmarks/research/drops/drops_screen.py --runs). That needs dusty_jax importable
 beside torch (``pip install -e .`` in the torch environment).
 """
 

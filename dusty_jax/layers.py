@@ -109,7 +109,7 @@ def _down_matmul(x, w):
 # conv_up uses col2im when Cout * COL2IM_RATIO <= Cin, im2col otherwise.
 COL2IM_RATIO = 8
 # ... and, for im2col, the four-tap form (tap_conv) when Cin <= TAP_MAX_CIN.
-# Measured on a 2-core EPYC (benchmarks/step_phases.py): at the CPU study's
+# Measured on a 2-core EPYC (benchmarks/research/speed/step_phases.py): at the CPU study's
 # sizes (Cin 32..128) the generator's VJP takes 0.8x the time of patches and
 # its forward 0.4x; at the paper's Cin of 256 and 512 the two are even.
 TAP_MAX_CIN = 128
@@ -257,8 +257,8 @@ _UP_PHASE = {k: (r, d) for r in range(2) for d, k in enumerate(_UP_TAPS[r])}
 # Which form computes each linear map of a 'matmul' layer: by the per-layer
 # timings of each map in each form on a 2-core EPYC, at the CPU study's and
 # the paper's sizes, and by whole gradients under variants of this plan
-# (python benchmarks/conv_forms.py --graphs,
-# benchmarks/results/conv_forms_cpu.json, medians of 3 rounds):
+# (python benchmarks/research/speed/conv_forms.py --graphs,
+# benchmarks/research/speed/results/conv_forms_cpu.json, medians of 3 rounds):
 #  * down-convs: F and Dx by lax.conv while the layer's batch * Cin * Cout *
 #    Ho * Wo <= DOWN_SMALL_MAX (the study's D), by patches above (the
 #    paper's, where lax.conv's F was up to 1.8x slower). Alone, the study

@@ -1,6 +1,7 @@
 """What measurability scores mean: reference maps scored like a model's.
 
-    python benchmarks/drop_oracles.py [--num 64] [--out benchmarks/results/drop_oracles.json]
+    python benchmarks/research/drops/drop_oracles.py [--num 64]
+        [--out benchmarks/research/drops/results/drop_oracles.json]
 
 The study scores a model's measurability against the simulated test scans'
 observed returns (benchmarks/study.py, ``disentangle``). Three maps that use
@@ -20,7 +21,7 @@ scans of the study's data:
 
 A model's AUC says where its drops go only as far as it beats these.
 
-    python benchmarks/drop_oracles.py --runs NAME=RUN_DIR,... [--out ...]
+    python benchmarks/research/drops/drop_oracles.py --runs NAME=RUN_DIR,... [--out ...]
 
 also splits a model's shortfall in two, on the test scans whose inversion
 the study saved (``RUN_DIR/study_inversion.npz``: the first 8, inverted
@@ -38,9 +39,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 import dusty_jax
 from dusty_jax import codec, configs, evaluation, trainer

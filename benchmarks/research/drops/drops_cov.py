@@ -1,8 +1,9 @@
 """Where a drops variant's synthesis scores come from: its samples with their
 drops, and the same samples with every point kept.
 
-    python benchmarks/drops_cov.py [--models sim-dusty1,sim-dusty1-authors] [--seeds 3]
-    python benchmarks/drops_cov.py --models RUN_DIR,... [--no-keep-all]
+    python benchmarks/research/drops/drops_cov.py [--models sim-dusty1,sim-dusty1-authors]
+        [--seeds 3]
+    python benchmarks/research/drops/drops_cov.py --models RUN_DIR,... [--no-keep-all]
 
 Table II (the study's N, points and seeds) of each generator (a shipped name
 or a training run's directory) twice:
@@ -17,9 +18,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))

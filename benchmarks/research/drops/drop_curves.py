@@ -1,9 +1,10 @@
 """The drop rate and D's logits over training of the study-length CPU runs.
 
-    python benchmarks/drop_curves.py [--out benchmarks/results/drops_full_length.png]
+    python benchmarks/research/drops/drop_curves.py
+        [--out benchmarks/research/drops/results/drops_full_length.png]
 
 Reads the training logs committed beside each study report
-(``benchmarks/results/**/*_metrics.jsonl``: a run's ``metrics.jsonl``, copied
+(``benchmarks/research/drops/results/**/*_metrics.jsonl``: a run's ``metrics.jsonl``, copied
 as ``MODEL_cpu_metrics.jsonl``; ``authors_code_metrics.jsonl`` is the authors'
 PyTorch code run by ``authors_step.py --train-steps``) and plots every one of
 them against the real scans' drop rate.
@@ -15,7 +16,10 @@ import argparse
 import glob
 import json
 import os
+import sys
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))

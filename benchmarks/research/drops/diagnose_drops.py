@@ -1,6 +1,6 @@
 """Why do a run's point-drops collapse? Probes its discriminator with ground truth.
 
-    python benchmarks/diagnose_drops.py --workdir RUN [--step N] [--num 64]
+    python benchmarks/research/drops/diagnose_drops.py --workdir RUN [--step N] [--num 64]
 
 For a run trained on simulated scans, the simulator knows each training
 scan's complete depth. Feeding the run's discriminator the same scenes
@@ -17,7 +17,7 @@ reason to keep them. Also the mean D input-gradient on real scans at dropped
 pixels vs returned ones, and what the generator's drops look like (rate,
 where). Prints a table; ``--json`` writes it (with the machine it ran on).
 
-    python benchmarks/diagnose_drops.py --can-d-see-drops [--steps 300]
+    python benchmarks/research/drops/diagnose_drops.py --can-d-see-drops [--steps 300]
 
 asks the question without a generator: a fresh discriminator of the study's
 CPU scale is trained for ``--steps`` to tell real scans (label real) from
@@ -25,7 +25,7 @@ the same scans with their drops filled (label fake), with the run's loss,
 DiffAugment and R1, under several settings (R1 gamma, augmentation, width);
 the held-out logit gap and accuracy say whether drops alone are visible to it.
 
-    python benchmarks/diagnose_drops.py --runs NAME=RUN_DIR,... --plot OUT.png
+    python benchmarks/research/drops/diagnose_drops.py --runs NAME=RUN_DIR,... --plot OUT.png
 
 plots the generated and real drop rates of training runs against the step
 (from their metrics.jsonl) and writes them with --json (under 'runs').
@@ -35,11 +35,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 
 

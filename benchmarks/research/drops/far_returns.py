@@ -1,7 +1,7 @@
 """Where a run's MMD lives: Table II's point metrics with the far returns dropped.
 
-    python benchmarks/far_returns.py --runs NAME=RUN,... [--far 40] [--num 200]
-        [--points 512] [--seeds 2] [--out benchmarks/results --name far_returns]
+    python benchmarks/research/drops/far_returns.py --runs NAME=RUN,... [--far 40] [--num 200]
+        [--points 512] [--seeds 2] [--out benchmarks/research/drops/results --name far_returns]
 
 For each run, samples as evaluation.synthesis does (the same sampling keys)
 and scores COV, MMD and JSD against the test split twice: as sampled, and
@@ -18,10 +18,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import jax
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 from dusty_jax import codec, evaluation, generator, sampling
 from dusty_jax.data import arrays, pipeline

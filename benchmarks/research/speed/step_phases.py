@@ -1,6 +1,6 @@
 """Where a training step's time goes, phase by phase.
 
-    python benchmarks/step_phases.py [--scale study|paper] [--impls matmul,xla]
+    python benchmarks/research/speed/step_phases.py [--scale study|paper] [--impls matmul,xla]
 
 Each phase is jit-compiled alone and timed (median of --repeats after a
 compile-and-warm-up call), on the shapes of the chosen scale (study: the CPU
@@ -18,17 +18,20 @@ channels 64..512, batch 32):
   * step: the whole train_step on one device (jit(shard_map)), and the
     loop's wall time per step including the host's work between steps.
 
-Prints the table and writes benchmarks/results/step_phases.json.
+Prints the table and writes benchmarks/research/speed/results/step_phases.json.
 """
 
 import argparse
 import os
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 from dusty_jax import augment, configs, losses, parallel, trainer
 from dusty_jax.sensor import get_sensor

@@ -1,6 +1,6 @@
 """Where a generator's own samples drop points: keep rate by ring and depth.
 
-    python benchmarks/drop_cells.py [--models sim-dusty1,sim-dusty1-authors,...]
+    python benchmarks/research/drops/drop_cells.py [--models sim-dusty1,sim-dusty1-authors,...]
         [--runs NAME=RUN_DIR,...] [--num 512]
 
 drop_oracles.py scores measurability through inversion of held-out scans,
@@ -27,17 +27,20 @@ split's observed keep rate on the simulator's complete depth
     all (the data's share is printed above the table).
 
 The table of each model and the data's go to a PNG beside the JSON
-(``--out``, default benchmarks/results/drop_cells.json).
+(``--out``, default benchmarks/research/drops/results/drop_cells.json).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import jax
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 import dusty_jax
 from drop_oracles import cell_rates, cell_sums

@@ -1,7 +1,7 @@
 """Does a run keep its scene's range? The depth drift of point-drop variants.
 
-    python benchmarks/depth_drift.py --runs NAME=RUN_DIR,... [--pretrained NAME,...]
-        [--num 32] [--every 500] [--out benchmarks/results --name depth_drift]
+    python benchmarks/research/drops/depth_drift.py --runs NAME=RUN_DIR,... [--pretrained NAME,...]
+        [--num 32] [--every 500] [--out benchmarks/research/drops/results --name depth_drift]
         [--samples NAME]
 
 Variants that hold their drops can lose their depth: the inverted x_tilde
@@ -32,9 +32,12 @@ import argparse
 import functools
 import json
 import os
+import sys
 
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 import drops_screen
 from dusty_jax.trainer import DIP  # the dip_weight term's threshold

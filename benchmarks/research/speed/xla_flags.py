@@ -1,6 +1,6 @@
 """Does an XLA CPU flag make the training step faster? A sweep, in one run.
 
-    python benchmarks/xla_flags.py [--scales study] [--impls matmul,xla]
+    python benchmarks/research/speed/xla_flags.py [--scales study] [--impls matmul,xla]
         [--rounds 3] [--sets default,xnnpack,...]
 
 Each flag set (SETS below) runs ``benchmarks/train_step.py`` in its own
@@ -8,7 +8,7 @@ process with that XLA_FLAGS (flags are read once, when the backend starts),
 round-robin for ``--rounds`` rounds so that the machine's drift falls on
 every set alike. Prints the median seconds per step (R1 every step) of each
 set and its ratio to ``default`` measured in the same run, and writes
-benchmarks/results/xla_flags.json. A flag this jaxlib does not know makes
+benchmarks/research/speed/results/xla_flags.json. A flag this jaxlib does not know makes
 its process fail: that set is reported as failed, not skipped silently.
 """
 
@@ -21,9 +21,12 @@ import tempfile
 
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+BENCHMARKS = os.path.join(HERE, '..', '..')  # train_step.py
 
 SETS = {
     'default': '',
@@ -53,8 +56,9 @@ def run_once(flags: str, scales: str, impls: str, repeats: int) -> dict:
     out = os.path.join(tmp, 'step.json')
     env = dict(os.environ, XLA_FLAGS=flags)
     env.pop('JAX_COMPILATION_CACHE_DIR', None)  # a cached program ignores the flags.
-    p = subprocess.run([sys.executable, os.path.join(HERE, 'train_step.py'), '--scales', scales,
-                        '--impls', impls, '--repeats', str(repeats), '--out', out],
+    p = subprocess.run([sys.executable, os.path.join(BENCHMARKS, 'train_step.py'),
+                        '--scales', scales, '--impls', impls, '--repeats', str(repeats),
+                        '--out', out],
                        env=env, capture_output=True, text=True)
     if p.returncode:
       return {'error': (p.stderr.strip().splitlines() or ['?'])[-1]}

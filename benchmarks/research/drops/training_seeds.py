@@ -1,8 +1,8 @@
 """Table II across training seeds: is a variant's synthesis no worse than another's?
 
-    python benchmarks/training_seeds.py --groups 'NAME=RUN,RUN,...;NAME=RUN,...'
+    python benchmarks/research/drops/training_seeds.py --groups 'NAME=RUN,RUN,...;NAME=RUN,...'
         [--split test|val] [--num 200] [--points 512] [--seeds 3]
-        [--out benchmarks/results --name training_seeds]
+        [--out benchmarks/research/drops/results --name training_seeds]
 
 One training run per seed in each group (the first group is the reference).
 Each run's EMA generator is scored by the library's evaluation.synthesis, the
@@ -28,9 +28,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 from dusty_jax import configs, evaluation, generator
 from dusty_jax.data import arrays, pipeline

@@ -1,7 +1,7 @@
 """Screening the point-drop mechanisms: short DUSty-I trainings, side by side.
 
-    python benchmarks/drops_screen.py --workdir runs/screen [--steps 600]
-        [--variants authors,rate,...] [--out benchmarks/results]
+    python benchmarks/research/drops/drops_screen.py --workdir runs/screen [--steps 600]
+        [--variants authors,rate,...] [--out benchmarks/research/drops/results]
 
 Each variant is the study's CPU-scale DUSty-I (experiments/study_dusty1.py)
 with some of the ``drops`` options of dusty_jax/configs.py set (VARIANTS
@@ -28,6 +28,8 @@ import sys
 
 import numpy as np
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))

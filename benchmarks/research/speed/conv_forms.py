@@ -1,6 +1,6 @@
 """Each conv layer's three linear maps, timed in each form they can take.
 
-    python benchmarks/conv_forms.py [--scales study,paper] [--rounds 3] [--graphs]
+    python benchmarks/research/speed/conv_forms.py [--scales study,paper] [--rounds 3] [--graphs]
 
 A 'matmul' conv layer (dusty_jax/layers.py) is three linear maps: the conv
 F(x, w), its transpose in the input Dx(ct, w) and in the kernel Dw(x, ct).
@@ -20,17 +20,20 @@ and under variants of it (VARIANTS; 'before' is the forms of the previous
 release: patches and tap matmuls throughout, the head's gradient from
 lax.conv).
 
-Writes benchmarks/results/conv_forms_cpu.json.
+Writes benchmarks/research/speed/results/conv_forms_cpu.json.
 """
 
 import argparse
 import dataclasses
 import os
 import statistics
+import sys
 
 import jax
 import jax.numpy as jnp
 
+# benchmarks/ holds common.py, shared with the product benchmarks.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 from dusty_jax import layers
 
