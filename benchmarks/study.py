@@ -61,10 +61,7 @@ LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_fardrops': 'DUSty-I, peaks held, far returns held',
           'dusty2_fardrops': 'DUSty-II, peaks held, far returns held'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
-EXPORT_NAMES = {'dusty1_fardrops': 'sim-dusty1', 'dusty1_peakdrops': 'sim-dusty1-peaks',
-                'dusty1_dipdrops': 'sim-dusty1-dips',
-                'dusty1_detdrops': 'sim-dusty1-detached',
-                'dusty1_drops': 'sim-dusty1-channel', 'dusty2_dipdrops': 'sim-dusty2',
+EXPORT_NAMES = {'dusty1_fardrops': 'sim-dusty1', 'dusty2_dipdrops': 'sim-dusty2',
                 'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')

@@ -171,9 +171,7 @@ def test_shipped_encoder_beats_a_random_start():
   """On a held-out simulated scan (scene seed 7; the study trained on seed
   0), 10 iterations from the shipped sim-dusty1's encoder fit the returned
   points with at most 0.9x the error of 10 from a random start (0.76x
-  when exported; sim-dusty1-peaks's 0.65x, sim-dusty1-dips's 0.70x, sim-dusty1-detached's 0.87x;
-  sim-dusty1-channel's encoder, trained the same way on the mask-channel
-  variant, under 0.8x)."""
+  when exported)."""
   from dusty_jax.data import synthetic
   params = dusty_jax.load_pretrained('sim-dusty1')
   assert params.encoder is not None, 'sim-dusty1 ships an encoder'

@@ -116,7 +116,7 @@ def plot(path, tables, edges):
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument('--models', default='sim-dusty1,sim-dusty1-authors,sim-dusty1-peaks,sim-dusty2',
+  p.add_argument('--models', default='sim-dusty1,sim-dusty1-authors,sim-dusty2',
                  help='load_pretrained names')
   p.add_argument('--runs', default='', help='NAME=RUN_DIR,...: trained runs (their EMA)')
   p.add_argument('--num', type=int, default=512, help='samples per model')

@@ -41,7 +41,7 @@ def keep_all(params):
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument('--models', default='sim-dusty1-detached,sim-dusty1-authors')
+  p.add_argument('--models', default='sim-dusty1,sim-dusty1-authors')
   p.add_argument('--num', type=int, default=200)
   p.add_argument('--points', type=int, default=512)
   p.add_argument('--seeds', type=int, default=3)
