@@ -8,6 +8,7 @@ call time is still a dependency, and a cycle of them is still a cycle.
 
 import ast
 import os
+import re
 
 import pytest
 
@@ -199,3 +200,103 @@ def test_lazy_imports_say_why():
   bad = {os.path.relpath(p, REPO): lines for p in _python_files('dusty_jax')
          if (lines := _unexplained_lazy_imports(p))}
   assert not bad, f'function-level imports without a reason: {bad}'
+
+
+RESEARCH = os.path.join(REPO, 'benchmarks', 'research')
+
+
+def _research_modules() -> set:
+  """Module names of the research record's scripts (each imports its
+  siblings by bare name, as the product benchmarks import common)."""
+  return {f[:-3] for _, _, files in os.walk(RESEARCH) for f in files if f.endswith('.py')}
+
+
+def _research_imports(path: str, research: set) -> list:
+  """Lines of ``path`` that import the research record: a ``research``
+  package, one of its scripts by name, or a sys.path entry naming it."""
+  out = []
+  for node in ast.walk(ast.parse(open(path).read(), path)):
+    names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+             [node.module or ''] if isinstance(node, ast.ImportFrom) else [])
+    if any(n.split('.')[0] in research | {'research'} or n.startswith('benchmarks.research')
+           for n in names):
+      out.append(node.lineno)
+    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+        and ast.unparse(node.func.value) == 'sys.path'
+        and any(isinstance(c, ast.Constant) and 'research' in str(c.value)
+                for a in node.args for c in ast.walk(a))):
+      out.append(node.lineno)
+  return out
+
+
+def test_the_research_import_check_sees_them(tmp_path):
+  p = tmp_path / 'x.py'
+  p.write_text('import common\nimport drops_screen\nfrom benchmarks.research.speed import x\n'
+               "import sys\nsys.path.insert(0, 'benchmarks/research/drops')\n"
+               'from dusty_jax import drops\n')
+  assert _research_imports(str(p), {'drops_screen'}) == [2, 3, 5]
+
+
+def test_nothing_of_the_product_imports_the_research_record():
+  """benchmarks/research/ holds probes and their records; the library, the
+  tests and the product benchmarks (benchmarks/*.py) never depend on it."""
+  research = _research_modules()
+  assert {'drops_screen', 'conv_forms'} <= research
+  product = list(_python_files('dusty_jax', 'tests')) + [
+      os.path.join(REPO, 'benchmarks', f) for f in os.listdir(os.path.join(REPO, 'benchmarks'))
+      if f.endswith('.py')]
+  bad = {os.path.relpath(p, REPO): lines for p in product
+         if (lines := _research_imports(p, research))}
+  assert not bad, f'imports of benchmarks/research: {bad}'
+
+
+def _documents() -> list:
+  """README.md and every Markdown file under benchmarks/."""
+  docs = [os.path.join(REPO, 'README.md')]
+  for d, _, files in os.walk(os.path.join(REPO, 'benchmarks')):
+    docs += [os.path.join(d, f) for f in files if f.endswith('.md')]
+  return docs
+
+
+def _anchors(path: str) -> set:
+  """GitHub's anchors of a Markdown file's headings."""
+  out = set()
+  for line in open(path).read().split('\n'):
+    if line.startswith('#'):
+      title = line.lstrip('#').strip().lower()
+      out.add(re.sub(r'[^\w\- ]', '', title).replace(' ', '-'))
+  return out
+
+
+def _broken_links(path: str) -> list:
+  """Relative links and images of a Markdown file whose target (file, or
+  heading of a Markdown file) does not exist."""
+  text = re.sub(r'```.*?```', '', open(path).read(), flags=re.S)
+  text = re.sub(r'`[^`\n]*`', '', text)
+  out = []
+  for target in re.findall(r'\]\(([^)\s]+)\)', text):
+    if re.match(r'[a-z]+:', target):
+      continue
+    file, _, anchor = target.partition('#')
+    full = os.path.normpath(os.path.join(os.path.dirname(path), file)) if file else path
+    if not os.path.exists(full):
+      out.append(target)
+    elif anchor and full.endswith('.md') and anchor not in _anchors(full):
+      out.append(target)
+  return out
+
+
+def test_the_link_check_sees_broken_links(tmp_path):
+  (tmp_path / 'a.png').write_bytes(b'')
+  (tmp_path / 'b.md').write_text('# A title, here\n')
+  p = tmp_path / 'x.md'
+  p.write_text('![ok](a.png) [gone](nothing.json) [web](https://x.org/y) [ok](b.md#a-title-here)\n'
+               '[no](b.md#other) [self](#top)\n```\nx[0](1)\n```\n# Top\n')
+  assert _broken_links(str(p)) == ['nothing.json', 'b.md#other']
+
+
+def test_every_relative_link_in_the_documents_resolves():
+  docs = _documents()
+  assert os.path.join(REPO, 'benchmarks', 'README.md') in docs
+  bad = {os.path.relpath(p, REPO): links for p in docs if (links := _broken_links(p))}
+  assert not bad, f'links to nothing: {bad}'

@@ -5,8 +5,8 @@
         [--samples NAME]
 
 Variants that hold their drops can lose their depth: the inverted x_tilde
-of held-out scans lies far behind the surfaces (README "Depth that
-survives the drops"). For each run this reports
+of held-out scans lies far behind the surfaces (README.md here, "Depth
+that survives the drops"). For each run this reports
   * over training, ``depth_gap`` from its metrics.jsonl (runs trained since
     the metric exists): the mean over rings of |mean returned value of the
     generated scans - the real batch's|, in normalised inverse depth;
