@@ -36,8 +36,9 @@ def initialize_distributed(coordinator: str | None = None,
                              process_id=process_id)
 
 
-# Measured on a 2-core CPU (README "Measured speed"): the study step is
-# fastest with 4 devices (shards of 4), slower with 8 (shards of 2).
+# Measured on a 2-core CPU by benchmarks/research/speed/xla_flags.py
+# (cpu_devices_study.json in its results/): the study step is fastest with 4
+# devices (shards of 4), slower with 8 (shards of 2).
 MIN_CPU_SHARD = 4      # examples per CPU device, at least
 CPU_DEVICES_PER_CORE = 2
 
@@ -59,7 +60,7 @@ def use_cpu_cores(batch_size: int, processes: int = 1) -> int | None:
   On one CPU device the small study step gains little from a second core
   (x1.26, against x1.62 for the authors' PyTorch step); several devices,
   each with its shard of the batch, run side by side and keep the cores
-  busy (x1.5 on 2 cores; README "Measured speed"). cpu_device_count says
+  busy (x1.5 on 2 cores; benchmarks/research/speed/README.md). cpu_device_count says
   how many. Randomness is drawn per example, so the run draws the same
   numbers on any number of devices.
 
