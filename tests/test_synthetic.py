@@ -6,7 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from dusty_jax.data import arrays, kitti as kitti_io, prepare, scene, simulated_lidar, synthetic
+from dusty_jax.data import (arrays, embree, kitti as kitti_io, prepare, scene,
+                            simulated_lidar, synthetic)
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 
@@ -116,6 +117,91 @@ def test_fallback_without_embree_agrees(tiny):
   da[a[1]] = np.linalg.norm(a[2], axis=1)
   db[b[1]] = np.linalg.norm(b[2], axis=1)
   np.testing.assert_allclose(da, db, rtol=1e-4)
+
+
+needs_embree = pytest.mark.skipif(
+    not (simulated_lidar.has_embree() and embree.available()),
+    reason='embreex (with its Embree 4 library) not installed')
+
+
+@needs_embree
+@pytest.mark.parametrize('seed,kind', [(0, 'urban'), (11, 'residential'), (22, 'rural'),
+                                       (2_000_005, None)])
+def test_direct_embree_equals_trimesh_embree(seed, kind):
+  """The fast ray caster (data/embree.py) against trimesh's Embree intersector,
+  which made every cached dataset: every output of a scan, bit for bit."""
+  from dusty_jax.sensor import get_sensor
+  sensor = get_sensor('kitti')
+  fast = simulated_lidar.render_scan(seed, sensor, kind, raycaster='embree')
+  plain = simulated_lidar.render_scan(seed, sensor, kind, raycaster='pyembree')
+  for name in ('depth', 'complete', 'drop_prob', 'material', 'incidence_cos'):
+    a, b = getattr(fast, name), getattr(plain, name)
+    assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
+  assert (fast.material >= 0).any() and (fast.material < 0).any()  # hits and sky
+
+
+@needs_embree
+def test_direct_embree_first_hits_small_mesh():
+  """Misses, a degenerate face and a mesh away from the origin: the same
+  (tri, ray, location) as ray_pyembree, and trimesh's face normals."""
+  import trimesh
+  box = trimesh.creation.box(extents=(2.0, 3.0, 1.0))
+  v = np.concatenate([box.vertices + [10.0, 1.0, 0.2], [[5, 0, 0], [5, 0, 0], [5, 0, 0]]])
+  f = np.concatenate([box.faces, [[8, 9, 10]]])  # the last face has no area
+  mesh = trimesh.Trimesh(v, f, process=False)
+  rng = np.random.default_rng(0)
+  d = np.concatenate([rng.normal(size=(300, 3)) + [3.0, 0.0, 0.0],
+                      [[1.0, 0.07, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]])
+  rays = embree.Rays(d)
+  tri, ray, loc, normals = embree.first_hits(mesh.vertices.view(np.ndarray),
+                                             mesh.faces.view(np.ndarray), rays)
+  ref = simulated_lidar.intersector(mesh, True).intersects_id(
+      np.zeros_like(d), d, multiple_hits=False, return_locations=True)
+  for a, b in zip((tri, ray, loc), ref):
+    assert a.tobytes() == np.asarray(b).tobytes()
+  assert 0 < len(ray) < len(d)
+  assert normals.tobytes() == mesh.face_normals.tobytes()
+  assert (normals[-1] == 0).all()
+
+
+def test_scene_builder_equals_parts_one_at_a_time():
+  """SceneBuilder transforms parts template by template; each part alone is
+  ``template * size @ yaw rotation + center``."""
+  b = scene.SceneBuilder()
+  parts = [(scene._BOX, (2.0, 1.0, 0.5), (3.0, -1.0, 0.25), 'wall', 0.0),
+           (scene._CYL, (0.3, 0.3, 4.0), (1.0, 2.0, 2.0), 'metal', 0.3),
+           (scene._BOX, (4.2, 1.8, 0.9), (-7.0, 3.0, 0.7), 'paint', np.pi + 0.02),
+           (scene._SPHERE, (3.0, 3.0, 2.4), (0.0, 9.0, 5.0), 'foliage', 0.0),
+           (scene._CYL, (0.65, 0.25, 0.65), (5.0, 5.0, 0.33), 'asphalt', -0.04)]
+  for t, size, center, material, yaw in parts[:2]:
+    b.add(t, size, center, material, yaw)
+  b.boxes([[0, 0, 0], [1, 1, 1]], [[0.5, 0.5, 0.5], [2, 2, 3]], 'glass')
+  for t, size, center, material, yaw in parts[2:]:
+    b.add(t, size, center, material, yaw)
+  mesh, material = b.mesh()
+  expect_v, expect_f, expect_m, n = [], [], [], 0
+  def one(vertices, faces, name):
+    nonlocal n
+    expect_v.append(vertices)
+    expect_f.append(faces + n)
+    expect_m.append(np.full(len(faces), scene.MATERIAL_IDS[name]))
+    n += len(vertices)
+  def part(t, size, center, name, yaw):
+    v = t.vertices * np.asarray(size)
+    if yaw:
+      c, s = np.cos(yaw), np.sin(yaw)
+      v = v @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+    one(v + np.asarray(center), t.faces, name)
+  for p in parts[:2]:
+    part(*p)
+  for lo, hi in (([0, 0, 0], [0.5, 0.5, 0.5]), ([1, 1, 1], [2, 2, 3])):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    one(scene._BOX.vertices * (hi - lo) + (lo + hi) / 2, scene._BOX.faces, 'glass')
+  for p in parts[2:]:
+    part(*p)
+  assert np.concatenate(expect_v).tobytes() == mesh.vertices.view(np.ndarray).tobytes()
+  np.testing.assert_array_equal(np.concatenate(expect_f), mesh.faces)
+  np.testing.assert_array_equal(np.concatenate(expect_m), material)
 
 
 def test_simulated_data_unchanged(tiny):

@@ -47,27 +47,37 @@ EGO = np.array([m.ego for m in MATERIALS.values()])
 SCENE_KINDS = ('urban', 'residential', 'rural')
 
 # --- Mesh templates ----------------------------------------------------------
-_BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-_CYL = trimesh.creation.cylinder(radius=0.5, height=1.0, sections=10)
-_SPHERE = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+class _Template:
+  """A unit mesh's vertices and faces as plain arrays (trimesh's
+  TrackedArray re-hashes on every operation: most of a scene's build time)."""
+
+  def __init__(self, mesh: trimesh.Trimesh):
+    self.vertices = np.array(mesh.vertices, dtype=np.float64)
+    self.faces = np.array(mesh.faces, dtype=np.int64)
+
+
+_BOX = _Template(trimesh.creation.box(extents=(1.0, 1.0, 1.0)))
+_CYL = _Template(trimesh.creation.cylinder(radius=0.5, height=1.0, sections=10))
+_SPHERE = _Template(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
 
 
 class SceneBuilder:
-  """Accumulates transformed template meshes with a material per face."""
+  """Accumulates transformed template meshes with a material per face.
+
+  Parts are recorded as they come and transformed together in :meth:`mesh`,
+  template by template: each part's vertices are ``template * size``, turned
+  by ``yaw`` (a 3x3 matmul), plus ``center``, the same float64 operations on
+  the same values as one part at a time.
+  """
 
   def __init__(self):
-    self.vertices, self.faces, self.material = [], [], []
-    self.n = 0
+    self.parts = []  # (template, size, center, yaw) or (vertices, faces)
+    self.material, self.material_faces = [], []  # id and face count per part
 
-  def add(self, template, size, center, material: str, yaw: float = 0.0):
-    v = template.vertices * np.asarray(size, np.float64)
-    if yaw:
-      c, s = np.cos(yaw), np.sin(yaw)
-      v = v @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
-    self.vertices.append(v + np.asarray(center, np.float64))
-    self.faces.append(template.faces + self.n)
-    self.material.append(np.full(len(template.faces), MATERIAL_IDS[material]))
-    self.n += len(template.vertices)
+  def add(self, template: _Template, size, center, material: str, yaw: float = 0.0):
+    self.parts.append((template, size, center, yaw))
+    self.material.append(MATERIAL_IDS[material])
+    self.material_faces.append(len(template.faces))
 
   def box(self, lo, hi, material, yaw=0.0):
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
@@ -79,18 +89,49 @@ class SceneBuilder:
     k = len(lo)
     if not k:
       return
-    nv = len(_BOX.vertices)
     v = _BOX.vertices[None] * (hi - lo)[:, None] + ((lo + hi) / 2)[:, None]
-    f = _BOX.faces[None] + (self.n + nv * np.arange(k))[:, None, None]
-    self.vertices.append(v.reshape(-1, 3))
-    self.faces.append(f.reshape(-1, 3))
-    self.material.append(np.full(k * len(_BOX.faces), MATERIAL_IDS[material]))
-    self.n += k * nv
+    f = _BOX.faces[None] + (len(_BOX.vertices) * np.arange(k))[:, None, None]
+    self.parts.append((v.reshape(-1, 3), f.reshape(-1, 3)))
+    self.material.append(MATERIAL_IDS[material])
+    self.material_faces.append(k * len(_BOX.faces))
 
   def mesh(self):
-    mesh = trimesh.Trimesh(np.concatenate(self.vertices),
-                           np.concatenate(self.faces), process=False)
-    return mesh, np.concatenate(self.material)
+    nv = np.array([len(p[0].vertices) if len(p) == 4 else len(p[0])
+                   for p in self.parts])
+    nf = np.asarray(self.material_faces)
+    v_start = np.concatenate([[0], np.cumsum(nv)])
+    f_start = np.concatenate([[0], np.cumsum(nf)])
+    vertices = np.empty((v_start[-1], 3), np.float64)
+    faces = np.empty((f_start[-1], 3), np.int64)
+    groups = {}
+    for i, p in enumerate(self.parts):
+      if len(p) == 2:
+        vertices[v_start[i]:v_start[i + 1]] = p[0]
+        faces[f_start[i]:f_start[i + 1]] = p[1] + v_start[i]
+      else:
+        groups.setdefault((id(p[0]), bool(p[3])), []).append(i)
+    for (_, turned), idx in groups.items():
+      template = self.parts[idx[0]][0]
+      size = np.array([self.parts[i][1] for i in idx], np.float64)
+      center = np.array([self.parts[i][2] for i in idx], np.float64)
+      v = template.vertices[None] * size[:, None]
+      if turned:
+        # Scalar cos and sin, as one part at a time took them: numpy's array
+        # loops may round differently in the last bit on some CPUs.
+        c = np.array([np.cos(self.parts[i][3]) for i in idx])
+        s = np.array([np.sin(self.parts[i][3]) for i in idx])
+        rot = np.zeros((len(idx), 3, 3))
+        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
+        rot[:, 2, 2] = 1
+        v = np.matmul(v, rot)
+      v += center[:, None]
+      k = len(template.vertices)
+      vertices[(v_start[idx][:, None] + np.arange(k)).ravel()] = v.reshape(-1, 3)
+      m = len(template.faces)
+      faces[(f_start[idx][:, None] + np.arange(m)).ravel()] = (
+          template.faces[None] + v_start[idx][:, None, None]).reshape(-1, 3)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    return mesh, np.repeat(np.asarray(self.material, np.int64), nf)
 
 
 def _car(b: SceneBuilder, x, y, yaw, ground, rng):

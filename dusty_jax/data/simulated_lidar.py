@@ -1,9 +1,10 @@
 """A simulated LiDAR: one ray per pixel into a scene (scene.py), and drops.
 
 The sensor sits ``sensor.mount_height`` above the road on the ego car, and
-casts one ray per pixel of the range image at the sensor's nominal angles
-(Embree through ``embreex`` when installed, trimesh's pure-numpy intersector
-otherwise).
+casts one ray per pixel of the range image at the sensor's nominal angles.
+The first hits are trimesh's Embree intersector's (``embreex``); data/embree.py
+gives the same answers faster by calling Embree directly, and without embreex
+trimesh's pure-numpy intersector stands in.
 
 Point-drop model, per pixel (all probabilities are of *no* return):
   * geometry: no hit (sky), a hit at or beyond ``max_depth``, at or closer
@@ -24,10 +25,11 @@ range noise (RANGE_NOISE_M). Ground truth kept per pixel: the complete depth
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
-from dusty_jax.data import scene
+from dusty_jax.data import embree, scene
 from dusty_jax.sensor import SensorSpec
 
 # --- Drop model constants ----------------------------------------------------
@@ -52,6 +54,44 @@ def ray_directions(sensor: SensorSpec) -> np.ndarray:
   el, az = sensor.nominal_angles().astype(np.float64)
   return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
                    np.sin(el)], -1)
+
+
+# Ways to find the first hits (see the module docstring): Embree called
+# directly, trimesh's Embree intersector (the reference), trimesh's numpy one.
+RAYCASTERS = ('embree', 'pyembree', 'numpy')
+
+
+def default_raycaster() -> str:
+  if embree.available():
+    return 'embree'
+  return 'pyembree' if has_embree() else 'numpy'
+
+
+@functools.lru_cache(maxsize=8)
+def _flat_directions(sensor: SensorSpec) -> np.ndarray:
+  d = ray_directions(sensor).reshape(-1, 3)
+  d.flags.writeable = False
+  return d
+
+
+@functools.lru_cache(maxsize=8)
+def _embree_rays(sensor: SensorSpec) -> embree.Rays:
+  return embree.Rays(_flat_directions(sensor))
+
+
+def first_hits(mesh, sensor: SensorSpec, raycaster: str | None = None):
+  """(index_tri, index_ray, locations, face normals) of each pixel's ray's
+  first hit on ``mesh``; rays that hit nothing are left out."""
+  raycaster = raycaster or default_raycaster()
+  if raycaster not in RAYCASTERS:
+    raise ValueError(f'unknown raycaster {raycaster!r}; known: {RAYCASTERS}')
+  if raycaster == 'embree':
+    return embree.first_hits(mesh.vertices.view(np.ndarray),
+                             mesh.faces.view(np.ndarray), _embree_rays(sensor))
+  dirs = _flat_directions(sensor)
+  tri, ray, loc = intersector(mesh, raycaster == 'pyembree').intersects_id(
+      np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True)
+  return tri, ray, loc, mesh.face_normals
 
 
 def intersector(mesh, use_embree: bool | None = None):
@@ -90,20 +130,19 @@ def drop_probability(hit, rng_dist, cos_inc, material, sensor: SensorSpec):
 
 
 def render_scan(seed: int, sensor: SensorSpec, kind: str | None = None,
-                use_embree: bool | None = None) -> Scan:
-  """Builds scene ``seed`` and simulates one scan of it."""
+                raycaster: str | None = None) -> Scan:
+  """Builds scene ``seed`` and simulates one scan of it (``raycaster``: one
+  of RAYCASTERS, default the fastest available)."""
   mesh, material, info = scene.build_scene(seed, kind, sensor.mount_height)
-  dirs = ray_directions(sensor).reshape(-1, 3)
-  origins = np.zeros_like(dirs)
-  tri, ray, loc = intersector(mesh, use_embree).intersects_id(
-      origins, dirs, multiple_hits=False, return_locations=True)
+  dirs = _flat_directions(sensor)
+  tri, ray, loc, normals = first_hits(mesh, sensor, raycaster)
   n = len(dirs)
   dist = np.full(n, np.inf)
   mat = np.full(n, -1, np.int64)
   cos_inc = np.zeros(n)
   dist[ray] = np.linalg.norm(loc, axis=1)
   mat[ray] = material[tri]
-  cos_inc[ray] = np.abs(np.einsum('ij,ij->i', mesh.face_normals[tri], dirs[ray]))
+  cos_inc[ray] = np.abs(np.einsum('ij,ij->i', normals[tri], dirs[ray]))
   hit = mat >= 0
   p_drop = drop_probability(hit, dist, cos_inc, mat, sensor)
   rng = np.random.default_rng((seed, 1))
@@ -118,6 +157,13 @@ def render_scan(seed: int, sensor: SensorSpec, kind: str | None = None,
               p_drop.reshape(shape).astype(np.float32),
               mat.reshape(shape), cos_inc.reshape(shape).astype(np.float32),
               info['kind'])
+
+
+def render_arrays(job: tuple[int, SensorSpec]):
+  """(observed, complete, drop_prob) of ``render_scan(*job)``: a worker's task
+  in synthetic.simulate (here, so that a worker does not import JAX)."""
+  s = render_scan(*job)
+  return s.depth, s.complete, s.drop_prob
 
 
 def to_sensor_order(depth: np.ndarray, sensor: SensorSpec) -> np.ndarray:

@@ -8,21 +8,54 @@ in parallel processes, plus a preview picture.
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
 import os
 import sys
 
 import numpy as np
 import tqdm
 
-from dusty_jax import codec
-from dusty_jax.data import arrays, kitti, simulated_lidar
+from dusty_jax.data import arrays, simulated_lidar
 from dusty_jax.sensor import SensorSpec
 
+# Scans a worker renders per task: few enough to keep both of two workers busy
+# to the end of a 200-scan split, many enough to send few tasks.
+_CHUNK = 8
 
-def _render_arrays(args):
-  seed, sensor = args
-  s = simulated_lidar.render_scan(seed, sensor)
-  return s.depth, s.complete, s.drop_prob
+
+@contextlib.contextmanager
+def _rendered(jobs: list, workers: int):
+  """Yields the (observed, complete, drop_prob) of each (seed, sensor) job,
+  in order, rendered by ``workers`` processes.
+
+  They are forked where JAX is not loaded and spawned where it is (forking a
+  process that runs JAX's threads can deadlock). A spawned worker imports
+  simulated_lidar (trimesh, not JAX) and the parent's main module.
+  """
+  if workers <= 1 or len(jobs) <= 1:
+    yield map(simulated_lidar.render_arrays, jobs)
+    return
+  method = 'spawn' if 'jax' in sys.modules else 'fork'
+  with multiprocessing.get_context(method).Pool(workers) as pool:
+    yield pool.imap(simulated_lidar.render_arrays, jobs, chunksize=_CHUNK)
+
+
+def _jobs(num: int, sensor: SensorSpec, seed: int) -> list:
+  """Scan i of dataset seed ``seed`` is scene ``seed * 1_000_003 + i``."""
+  return [(seed * 1_000_003 + i, sensor) for i in range(num)]
+
+
+def _collect(results, num: int, sensor: SensorSpec, progress: bool, desc: str):
+  """The next ``num`` of ``results`` as three (num, H, W) float32 arrays."""
+  out = [np.zeros((num,) + sensor.shape, np.float32) for _ in range(3)]
+  bar = tqdm.tqdm(total=num, desc=desc, unit='scan', file=sys.stderr,
+                  disable=not progress)
+  for i in range(num):
+    out[0][i], out[1][i], out[2][i] = next(results)
+    bar.update()
+  bar.close()
+  return tuple(out)
 
 
 def simulate(num: int, sensor: SensorSpec, seed: int = 0, progress: bool = True,
@@ -32,26 +65,8 @@ def simulate(num: int, sensor: SensorSpec, seed: int = 0, progress: bool = True,
   Scan i uses scene seed ``seed * 1_000_003 + i``: the result does not depend
   on ``workers``.
   """
-  shape = (num,) + sensor.shape
-  out = [np.zeros(shape, np.float32) for _ in range(3)]
-  jobs = [(seed * 1_000_003 + i, sensor) for i in range(num)]
-  bar = tqdm.tqdm(total=num, desc=desc, unit='scan', file=sys.stderr,
-                  disable=not progress)
-  if workers > 1 and num > 1:
-    import multiprocessing
-    # Forking a process that runs JAX's threads can deadlock: spawn then.
-    method = 'spawn' if 'jax' in sys.modules else 'fork'
-    with multiprocessing.get_context(method).Pool(workers) as pool:
-      results = pool.imap(_render_arrays, jobs, chunksize=16)
-      for i, r in enumerate(results):
-        out[0][i], out[1][i], out[2][i] = r
-        bar.update()
-  else:
-    for i, job in enumerate(jobs):
-      out[0][i], out[1][i], out[2][i] = _render_arrays(job)
-      bar.update()
-  bar.close()
-  return tuple(out)
+  with _rendered(_jobs(num, sensor, seed), workers) as results:
+    return _collect(results, num, sensor, progress, desc)
 
 
 SPLIT_SEED_OFFSET = {'train': 0, 'val': 1, 'test': 2}
@@ -71,18 +86,24 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
                       'test': max(num // 10, 1)}
   os.makedirs(out, exist_ok=True)
   seq = {'train': 0, 'val': 8, 'test': 11}
-  for split, n in splits.items():
-    obs, complete, prob = simulate(
-        n, sensor, seed=seed * 10 + SPLIT_SEED_OFFSET[split], progress=progress,
-        desc=split, workers=workers)
-    arrays.save_array(arrays.split_path(out, split), obs)
-    arrays.save_array(arrays.split_path(out, split, 'complete'), complete)
-    arrays.save_array(arrays.split_path(out, split, 'drop_prob'), prob)
-    if bins:
-      for i, d in enumerate(obs):
-        kitti.write_bin(os.path.join(out, 'kitti', 'sequences',
-                                     f'{seq[split]:02d}', 'velodyne',
-                                     f'{i:06d}.bin'), simulated_lidar.to_sensor_order(d, sensor))
+  # One pool for all splits: the workers go on with the next split while
+  # this process writes the last one.
+  jobs = [job for split, n in splits.items()
+          for job in _jobs(n, sensor, seed * 10 + SPLIT_SEED_OFFSET[split])]
+  with _rendered(jobs, workers) as results:
+    for split, n in splits.items():
+      obs, complete, prob = _collect(results, n, sensor, progress, split)
+      arrays.save_array(arrays.split_path(out, split), obs)
+      arrays.save_array(arrays.split_path(out, split, 'complete'), complete)
+      arrays.save_array(arrays.split_path(out, split, 'drop_prob'), prob)
+      if bins:
+        # Here: kitti imports JAX (through unfolding and codec); at the top,
+        # it would make every pool of _rendered spawn rather than fork.
+        from dusty_jax.data import kitti
+        for i, d in enumerate(obs):
+          kitti.write_bin(os.path.join(out, 'kitti', 'sequences',
+                                       f'{seq[split]:02d}', 'velodyne',
+                                       f'{i:06d}.bin'), simulated_lidar.to_sensor_order(d, sensor))
   arrays.save_array(os.path.join(out, arrays.ANGLES), sensor.nominal_angles())
   save_preview(os.path.join(out, 'preview.png'), out, sensor)
   meta = {'dataset': 'synthetic', 'sensor': sensor.name,
@@ -94,7 +115,8 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
 
 def save_preview(path: str, directory: str, sensor: SensorSpec, num: int = 4):
   """PNG of observed depth, complete depth and drop probability, per scan."""
-  from dusty_jax import writers  # here: matplotlib's import cost, for a preview only
+  # Here: the import cost of matplotlib and of JAX (codec), for a preview only.
+  from dusty_jax import codec, writers
   obs = arrays.load_split(directory, 'train', sensor)[:num]
   comp = arrays.load_split(directory, 'train', sensor, 'complete')[:num]
   prob = arrays.load_split(directory, 'train', sensor, 'drop_prob')[:num]
