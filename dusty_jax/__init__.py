@@ -12,11 +12,42 @@ Public API:
 Command lines: ``python -m dusty_jax.train`` and ``python -m dusty_jax.tools.NAME``.
 """
 
-from dusty_jax.generator import GeneratorParams, load as load_checkpoint
-from dusty_jax.inversion import invert, render_drops
-from dusty_jax.pretrained import load_pretrained
-from dusty_jax.sampling import generate, sample
-from dusty_jax.sensor import SensorSpec, get_sensor
+import importlib
+from typing import TYPE_CHECKING
 
-__all__ = ['GeneratorParams', 'SensorSpec', 'generate', 'get_sensor', 'invert',
-           'load_checkpoint', 'load_pretrained', 'render_drops', 'sample']
+# Name -> the module that defines it. Loaded on first use (PEP 562), so that
+# ``import dusty_jax`` and a command's --help do not pay for JAX, Flax and
+# orbax (seconds on a small CPU) before anything needs them.
+_API = {
+    'GeneratorParams': ('dusty_jax.generator', 'GeneratorParams'),
+    'SensorSpec': ('dusty_jax.sensor', 'SensorSpec'),
+    'generate': ('dusty_jax.sampling', 'generate'),
+    'get_sensor': ('dusty_jax.sensor', 'get_sensor'),
+    'invert': ('dusty_jax.inversion', 'invert'),
+    'load_checkpoint': ('dusty_jax.generator', 'load'),
+    'load_pretrained': ('dusty_jax.pretrained', 'load_pretrained'),
+    'render_drops': ('dusty_jax.inversion', 'render_drops'),
+    'sample': ('dusty_jax.sampling', 'sample'),
+}
+
+__all__ = sorted(_API)
+
+if TYPE_CHECKING:  # what the names are, for readers and type checkers
+  from dusty_jax.generator import GeneratorParams, load as load_checkpoint
+  from dusty_jax.inversion import invert, render_drops
+  from dusty_jax.pretrained import load_pretrained
+  from dusty_jax.sampling import generate, sample
+  from dusty_jax.sensor import SensorSpec, get_sensor
+
+
+def __getattr__(name):
+  if name not in _API:
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+  module, attr = _API[name]
+  value = getattr(importlib.import_module(module), attr)
+  globals()[name] = value  # once: later lookups do not come here
+  return value
+
+
+def __dir__():
+  return sorted(set(globals()) | set(_API))

@@ -21,7 +21,7 @@ import sys
 from absl import flags
 from ml_collections import config_dict
 
-from dusty_jax import configs, errors
+from dusty_jax import errors
 
 USAGE = 2        # a bad flag or config field, as absl exits for bad flags
 FAILED = 1       # any other error a user's input caused
@@ -65,7 +65,12 @@ def run(fn, *args):
   """Calls ``fn(*args)``; a user's error exits with its one line."""
   # Imported here: orbax's import cost, for tools that never touch it.
   from dusty_jax import checkpoint
+  # (and the configs' Flax: --help and a bad flag answer before it loads)
+  from dusty_jax import configs
   own = (errors.UserError, checkpoint.CheckpointError)
+  # JAX's import cost too: once a command runs, its programs compile once.
+  from dusty_jax import xla_cache
+  xla_cache.enable()
   try:
     with checkpoint.quiet():
       return fn(*args)
@@ -121,6 +126,11 @@ def parse_flags(argv, values: flags.FlagValues = flags.FLAGS,
   an unknown flag, a bad value, a missing config file or an unknown config
   field (``config``: the name of the config file flag) is one line and exit
   2. Returns the arguments left."""
+  if config is not None:
+    argv = [_with_config_found(a, config) for a in argv]
+    for i in range(1, len(argv)):
+      if argv[i - 1] == f'--{config}':
+        argv[i] = find_config(argv[i])
   try:
     rest = values(argv)
   except flags.Error as e:
@@ -138,8 +148,41 @@ def parse_flags(argv, values: flags.FlagValues = flags.FLAGS,
     fail(f'--{config}: {_message(e)}', USAGE)
   path = config and _config_file(argv, values, config)
   if path and not os.path.isfile(path.partition(':')[0]):
-    fail(f'--{config}={path}: no such config file', USAGE)
+    fail(f'--{config}={path}: no such config file, here or in {EXPERIMENTS} '
+         f'({", ".join(experiment_files())})', USAGE)
   return rest
+
+
+# The repository's experiments/ (beside the package): a relative --config
+# path not found in the working directory is looked up there, so that
+# `--config experiments/quick.py` works from any directory.
+EXPERIMENTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                           'experiments')
+
+
+def experiment_files() -> list[str]:
+  """The config files of the repository's experiments/ (none when the
+  package was installed without it)."""
+  if not os.path.isdir(EXPERIMENTS):
+    return []
+  return sorted(f for f in os.listdir(EXPERIMENTS)
+                if f.endswith('.py') and not f.startswith('_'))
+
+
+def find_config(path: str) -> str:
+  """``path`` (``FILE`` or ``FILE:ARG``) as given when FILE exists or is
+  absolute, else the repository's experiments/ file of that name if there
+  is one, else as given (the parse then says it is missing)."""
+  file, sep, arg = path.partition(':')
+  if not file or os.path.isabs(file) or os.path.isfile(file):
+    return path
+  found = os.path.join(EXPERIMENTS, os.path.basename(file))
+  return found + sep + arg if os.path.isfile(found) else path
+
+
+def _with_config_found(arg: str, name: str) -> str:
+  prefix = f'--{name}='
+  return prefix + find_config(arg[len(prefix):]) if arg.startswith(prefix) else arg
 
 
 def _config_file(argv, values, name):

@@ -14,15 +14,26 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from dusty_jax.sensor import SensorSpec
+from dusty_jax.sensor import SensorSpec, get_sensor
 
 ALPHA = -1.0  # the point-drop constant in normalised inverse depth.
 
 
+def as_sensor(sensor) -> SensorSpec:
+  """A SensorSpec, or a preset's name ('kitti', 'mpo') as one; anything
+  else is refused with what to pass."""
+  if isinstance(sensor, str):
+    return get_sensor(sensor)
+  if not hasattr(sensor, 'min_depth'):  # a SensorSpec, or one of its kind
+    raise TypeError(f'sensor: expected a SensorSpec (params.sensor, '
+                    f"dusty_jax.get_sensor('kitti')) or a preset name, got "
+                    f'{type(sensor).__name__}')
+  return sensor
 
 
 def valid_depth(depth, sensor: SensorSpec):
   """True where depth is finite and strictly inside the sensor's range."""
+  sensor = as_sensor(sensor)
   depth = jnp.asarray(depth)
   return jnp.isfinite(depth) & (depth > sensor.min_depth) & (
       depth < sensor.max_depth)
@@ -36,7 +47,9 @@ def encode(depth, sensor: SensorSpec):
   """Metric depth (any shape) -> normalised inverse depth in [-1, 1].
 
   Zero, negative, NaN, inf and out-of-range depths become ALPHA, never NaN.
+  ``sensor``: a SensorSpec (``params.sensor``) or a preset name ('kitti').
   """
+  sensor = as_sensor(sensor)
   depth = jnp.asarray(depth, jnp.float32)
   valid = valid_depth(depth, sensor)
   lo, hi = _inv_bounds(sensor)
@@ -56,6 +69,7 @@ def decode(x, sensor: SensorSpec, tolerance: float = 0.0):
   only exactly ALPHA is a drop). Dropped pixels get depth 0. NaN counts as
   dropped.
   """
+  sensor = as_sensor(sensor)
   x = jnp.asarray(x, jnp.float32)
   valid = jnp.isfinite(x) & ((x - ALPHA) / 2.0 > tolerance)
   lo, hi = _inv_bounds(sensor)
@@ -70,6 +84,7 @@ def complete_depth(x_tilde, sensor: SensorSpec):
   Unlike :func:`decode`, nothing is a drop: x_tilde = ALPHA is the far end
   of the range (max_depth), not a missing point.
   """
+  sensor = as_sensor(sensor)
   x = jnp.clip(jnp.asarray(x_tilde, jnp.float32), ALPHA, 1.0)
   lo, hi = _inv_bounds(sensor)
   return 1.0 / ((x + 1.0) / 2.0 * (hi - lo) + lo)

@@ -41,6 +41,8 @@ import functools
 import json
 import math
 import os
+import sys
+import time
 from typing import Any
 
 import flax.linen as nn
@@ -48,13 +50,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import tqdm
 from flax import traverse_util
 
-from dusty_jax import corrupt, layers
+from dusty_jax import checkpoint, corrupt, layers, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.models import EqualConv, check_shape
 
 FILE = 'encoder.npz'  # in a run directory, beside generator.json
+DIRECTORY = 'encoder'  # its training's checkpoints, in the run directory
+OPTIONS_FILE = 'options.json'  # in DIRECTORY: the options a resumed training keeps
+SAVE_EVERY = 250  # steps between checkpoints
 TRAIN_COMMAND = 'python -m dusty_jax.tools.train_encoder --workdir RUN'
 
 
@@ -125,16 +131,22 @@ def module(params, impl: str | None = None) -> Encoder:
                  EncoderSettings(), impl or layers.default_impl())
 
 
-def check_has_encoder(params, source: str = 'this generator'):
+def check_has_encoder(params, source: str = 'this generator', carry=()):
+  """Refuses a generator without an encoder, saying what is possible:
+  init='random', training one for a run, or the pretrained models ``carry``
+  (names) that ship with one."""
   if params.encoder is None:
-    raise ValueError(f"{source} has no encoder (init='encoder' needs one); train one "
-                     f'for its run with `{TRAIN_COMMAND}`, or use '
-                     "init='random'")
+    shipped = (f"; the pretrained {', '.join(carry)} carr{'ies' if len(carry) == 1 else 'y'}"
+               ' one (dusty_jax.load_pretrained(NAME))' if carry else '')
+    raise ValueError(f"{source} has no encoder (init='encoder' needs one): use "
+                     "init='random' (the authors' start), or train one for a training "
+                     f'run with `{TRAIN_COMMAND}`{shipped}')
 
 
 def encode(params, scans, impl: str | None = None):
   """Latents on the sphere (B, d) of scans (B, H, W): the encoder's answer."""
   check_has_encoder(params)
+  xla_cache.enable()
   return _encode(params, scans, impl)
 
 
@@ -246,6 +258,75 @@ def train_step(params, enc_vars, opt_state, key, opts: TrainOptions,
   updates, opt_state = optimizer(opts).update(grads, opt_state, enc_vars)
   enc_vars = optax.apply_updates(enc_vars, updates)
   return enc_vars, opt_state, {'loss': loss, 'latent': latent, 'rec': rec, 'real': fit}
+
+
+def check_options(directory: str, opts: TrainOptions) -> None:
+  """A resumed training must keep its options (the schedule depends on
+  them): records them in ``directory`` the first time, refuses others after."""
+  path = os.path.join(directory, OPTIONS_FILE)
+  mine = dataclasses.asdict(opts)
+  if os.path.isfile(path):
+    with open(path) as fh:
+      saved = json.load(fh)
+    if saved != mine:
+      diff = {k: (saved.get(k), v) for k, v in mine.items() if saved.get(k) != v}
+      raise ValueError(f'{directory} holds an encoder training with other options '
+                       f'(saved, given): {diff}; give the same flags to resume, or '
+                       'remove that folder to start again')
+  else:
+    os.makedirs(directory, exist_ok=True)
+    with open(path, 'w') as fh:
+      json.dump(mine, fh, indent=2)
+
+
+def train(params, directory: str, opts: TrainOptions = TrainOptions(), real=None,
+          settings: EncoderSettings = EncoderSettings(), progress: bool = True):
+  """Trains an encoder for the frozen generator ``params``.
+
+  ``real``: the run's training scans (N, H, W), normalised inverse depth, for
+  the real-scan term (None: G's samples only; needs ``opts.w_real == 0``).
+  Checkpoints into ``directory`` every SAVE_EVERY steps and at the end; a
+  call on the same directory resumes there (with the same options).
+  Returns (variables, info): info holds the steps, the options and the last
+  step's loss terms.
+  """
+  if real is None and opts.w_real > 0:
+    raise ValueError(f'w_real={opts.w_real}: the real-scan term needs the training '
+                     'scans (real=), or give w_real=0')
+  params = params.replace(encoder=None, encoder_settings=None)
+  check_options(directory, opts)
+  k_init, key = jax.random.split(jax.random.key(opts.seed))
+  enc_vars = init_variables(k_init, params, settings)
+  state = {'encoder': enc_vars, 'opt': optimizer(opts).init(enc_vars)}
+  mngr = checkpoint.manager(directory, keep=2)
+  state, step = checkpoint.restore_latest(mngr, state)
+  start = 0 if step is None else step
+  params = params.replace(encoder_settings=settings)
+  bar = tqdm.tqdm(total=opts.steps, initial=start, desc='encoder', unit='step',
+                  file=sys.stderr, disable=not progress)
+  # Committed to the device as train_step's outputs are, so that the second
+  # step does not compile again.
+  enc_vars, opt_state = jax.device_put((state['encoder'], state['opt']),
+                                       jax.local_devices()[0])
+  t0, metrics = time.time(), {}
+  for i in range(start, opts.steps):
+    batch = None
+    if real is not None and opts.w_real > 0:
+      pick = np.random.default_rng((opts.seed, i)).integers(0, len(real), opts.real_batch)
+      batch = real[pick]
+    enc_vars, opt_state, metrics = train_step(
+        params, enc_vars, opt_state, jax.random.fold_in(key, i), opts, real=batch)
+    if (i + 1) % 50 == 0 or i + 1 == opts.steps:
+      bar.set_postfix({k: f'{float(v):.4f}' for k, v in metrics.items()})
+    if (i + 1) % SAVE_EVERY == 0 or i + 1 == opts.steps:
+      checkpoint.save(mngr, i + 1, {'encoder': enc_vars, 'opt': opt_state}, force=True)
+    bar.update(1)
+  bar.close()
+  checkpoint.wait(mngr)
+  info = {'steps': opts.steps, 'options': dataclasses.asdict(opts),
+          'final': {k: float(v) for k, v in metrics.items()},
+          'seconds_this_call': round(time.time() - t0, 1)}
+  return jax.device_get(enc_vars), info
 
 
 # ----------------------------------------------------------------------------

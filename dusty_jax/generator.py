@@ -166,6 +166,12 @@ def load(path: str, step: int | None = None, ema: bool = True,
   dataset. ``log`` (default: stderr) gets a warning per damaged checkpoint
   skipped, then the step loaded.
   """
+  # The shipped models' folder (pretrained/ imports this module: read it as files).
+  shipped = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'pretrained')
+  if not os.path.exists(path) and os.path.isfile(os.path.join(shipped, f'{path}.npz')):
+    raise FileNotFoundError(f"{path}: no such run directory or file; {path!r} is a "
+                            'pretrained model: load it with '
+                            f'dusty_jax.load_pretrained({path!r})')
   if os.path.isfile(path):
     if os.path.basename(path) in (configs.FILE, SPEC_FILE):
       what = 'config' if os.path.basename(path) == configs.FILE else 'generator description'

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import encoder as encoder_lib, sampling
+from dusty_jax import encoder as encoder_lib, pretrained, sampling, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.generator import GeneratorParams
 
@@ -163,7 +163,8 @@ def _check_init(params, init, num_scans):
       raise ValueError(f'init={init!r}: known starts are {sorted(STARTS)}, or '
                        'given latents (B, latent_dim)')
     if init == 'encoder':
-      encoder_lib.check_has_encoder(params, f'generator {params.model!r}')
+      encoder_lib.check_has_encoder(params, f'generator {params.model!r}',
+                                    pretrained.with_encoder())
     return init, None
   z = jnp.asarray(init, jnp.float32)
   want = (num_scans, params.latent_dim)
@@ -225,6 +226,7 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
   """
   if not isinstance(num_steps, (int, np.integer)) or num_steps < 0:
     raise ValueError(f'num_steps={num_steps!r}: must be a whole number >= 0')
+  xla_cache.enable()
   if not isinstance(lr, jax.core.Tracer) and not (
       np.ndim(lr) == 0 and np.isfinite(lr) and lr > 0):
     raise ValueError(f'lr={lr!r}: the learning rate must be a finite number > 0')
@@ -241,6 +243,7 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
           'mistake?); encode metric depth with dusty_jax.codec.encode(depth, '
           'params.sensor), which also marks 0 / out-of-range depths as drops')
   single = scan.ndim == 2
+  given = scan.shape
   if mask is not None and np.shape(mask) != scan.shape:
     raise ValueError(f'mask of shape {np.shape(mask)} does not match the scan '
                      f'{scan.shape}')
@@ -248,8 +251,9 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     scan = scan[None]
     mask = None if mask is None else jnp.asarray(mask)[None]
   if scan.shape[1:] != params.sensor.shape:
-    raise ValueError(f'scan of shape {scan.shape[1:]} does not match the '
-                     f'generator\'s sensor {params.sensor.shape}')
+    hw = tuple(params.sensor.shape)
+    raise ValueError(f'scan of shape {given} does not match the generator\'s sensor '
+                     f'{hw}: expected {hw} or (B,) + {hw}')
   if not isinstance(scan, jax.core.Tracer):
     _warn_if_not_encoded(np.asarray(scan), single)
   masks = target_mask(scan, mask)

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, sensor
+from dusty_jax import codec, sensor, xla_cache
 from dusty_jax.generator import GeneratorParams
 
 
@@ -32,6 +32,7 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   Compiled (jit) once per shape; inside other jitted code it inlines.
   """
+  xla_cache.enable()
   return _generate(params, z, key, train, impl)
 
 
@@ -76,6 +77,7 @@ def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   if not isinstance(num, (int, np.integer)) or num < 0:
     raise ValueError(f'num={num!r}: the number of scans must be a whole number >= 0')
   check_params(params)
+  xla_cache.enable()
   key = as_key(key)
   if key.shape != ():
     raise ValueError(f'key: expected one key, got shape {key.shape}')

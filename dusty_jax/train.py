@@ -12,11 +12,25 @@ resumes from (exit 130): see cli.py. absl's log shows warnings and errors
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from dusty_jax import cli, parallel
+from dusty_jax import cli, configs, parallel
+
+
+def _fields(c, prefix='') -> str:
+  """A config's field names, groups as ``data.{dir,cache}``."""
+  return ', '.join(f'{prefix}{k}.{{{_fields(v)}}}' if hasattr(v, 'keys') else f'{prefix}{k}'
+                   for k, v in c.items())
+
+
+CONFIG_HELP = (
+    'Experiment config file: experiments/NAME.py for NAME in '
+    f'{", ".join(f[:-3] for f in cli.experiment_files()) or "(experiments/ not found)"} '
+    "(a relative path not found here is looked up in the repository's experiments/). "
+    'Override any field with --config.FIELD=VALUE (e.g. --config.batch_size=8, '
+    f'--config.data.dir=data/kitti); the fields: {_fields(configs.default())}.')
 
 FLAGS = flags.FLAGS
-config_flags.DEFINE_config_file('config', 'experiments/synthetic.py',
-                                'Experiment config file.', lock_config=True)
+config_flags.DEFINE_config_file('config', cli.find_config('experiments/synthetic.py'),
+                                CONFIG_HELP, lock_config=True)
 flags.DEFINE_string('workdir', 'runs/default', 'Where the run is written.')
 flags.DEFINE_string('coordinator', None,
                     'host:port of process 0 for a multi-host run.')

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 
-from dusty_jax import generator
+from dusty_jax import generator, xla_cache
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -33,7 +33,13 @@ def load_pretrained(name: str):
   path = path_of(name)
   if not os.path.isfile(path):
     raise ValueError(f'no pretrained model {name!r}; available: {available()}')
+  xla_cache.enable()  # what a shipped model is for: invert and sample, compiled once
   return generator.load_file(path)
+
+
+def with_encoder() -> list[str]:
+  """The shipped models that carry an encoder (invert(init='encoder'))."""
+  return [n for n in available() if 'encoder' in generator.read_meta(path_of(n))]
 
 
 def describe(name: str) -> dict:

@@ -16,6 +16,8 @@ its own ``flags.FlagValues``, so tools can be imported and called together
 
 from __future__ import annotations
 
+import importlib.util
+import os
 import sys
 
 from absl import flags
@@ -35,3 +37,35 @@ def parse(values: flags.FlagValues, argv, doc: str) -> None:
   rest = cli.parse_flags(['tool'] + args, values, config=None)
   if len(rest) > 1:
     cli.fail(f'unexpected arguments {rest[1:]} (see --help)', cli.USAGE)
+
+
+def pretrained_names() -> list[str]:
+  """The models dusty_jax/pretrained ships, read from the folder without
+  importing it (which loads JAX), so that --help can name them."""
+  spec = importlib.util.find_spec('dusty_jax.pretrained')
+  folder = list(spec.submodule_search_locations)[0]
+  return sorted(f[:-4] for f in os.listdir(folder) if f.endswith('.npz'))
+
+
+MODEL_FORMS = ("a training run directory, a pretrained model's name ({names}), a "
+               "generator .npz (generator.export) or an authors' .pth")
+
+
+def model_help(what: str = 'the generator') -> str:
+  """A --workdir flag's help: the forms :func:`load_model` accepts."""
+  return f'{what}: ' + MODEL_FORMS.format(names=', '.join(pretrained_names()))
+
+
+def load_model(source: str):
+  """(GeneratorParams, config or None) of ``source``: a path that exists
+  (run directory, .npz, .pth: load_checkpoint), else a pretrained name
+  (load_pretrained; config None)."""
+  # The library (and JAX) load once the flags are good.
+  from dusty_jax import generator, pretrained
+  if os.path.exists(source) or source not in pretrained_names():
+    if not os.path.exists(source):
+      raise FileNotFoundError(
+          f'{source}: no such run directory or file, nor a pretrained model; give '
+          + MODEL_FORMS.format(names=', '.join(pretrained_names())))
+    return generator.load(source)
+  return pretrained.load_pretrained(source), None

@@ -22,13 +22,15 @@ import os
 
 from absl import flags
 
-from dusty_jax import configs, generator, tools, trainer
-from dusty_jax.data import arrays
+from dusty_jax import tools
 
 
 def convert(pth: str, workdir: str, config: str | None = None, ema: bool = True,
             angles: str | None = None, data_dir: str | None = None) -> str:
   """Writes the run directory ``workdir`` for an authors' checkpoint."""
+  # The library (and JAX) load once the flags are good: --help answers at once.
+  from dusty_jax import configs, generator, trainer
+  from dusty_jax.data import arrays  # (as above)
   if not os.path.isfile(pth):
     raise FileNotFoundError(f'{pth}: no such file')
   if pth.endswith('.npz'):

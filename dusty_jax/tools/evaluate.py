@@ -1,7 +1,12 @@
 """Evaluates a training run with the paper's synthesis metrics (Table II).
 
     python -m dusty_jax.tools.evaluate --workdir RUN [--num 5000] [--points 2048] [--seeds 5]
-        [--protocol reference|paper] [--split test|val]
+        [--protocol reference|paper] [--split test|val] [--data_dir DIR]
+
+RUN is a training run directory, or with ``--data_dir`` (a prepared dataset)
+a pretrained model's name (``--workdir sim-dusty1``), a generator ``.npz`` or
+an authors' ``.pth``; evaluation.json goes into the run, else the current
+directory.
 
 Samples from the EMA generator, compares with the test split of the run's
 dataset, and prints mean +- std over seeds, with the "training set" row
@@ -28,15 +33,17 @@ import os
 
 from absl import flags
 
-from dusty_jax import evaluation, generator, tools
-from dusty_jax.data import arrays, pipeline
-from dusty_jax.metrics import records
+from dusty_jax import tools
 
 
 def main(argv=None):
   f = flags.FlagValues()
-  flags.DEFINE_string('workdir', None, 'training run directory', flag_values=f,
-                      required=True)
+  flags.DEFINE_string('workdir', None, tools.model_help('the generator') +
+                      ' (a run is compared with its own dataset; anything else with '
+                      '--data_dir)', flag_values=f, required=True)
+  flags.DEFINE_string('data_dir', None, 'a prepared dataset to compare with instead of '
+                      "the run's (needed for a pretrained name or a single file)",
+                      flag_values=f)
   flags.DEFINE_integer('num', 5000, 'clouds per set', lower_bound=1, flag_values=f)
   flags.DEFINE_integer('points', 2048, 'points per cloud', lower_bound=1, flag_values=f)
   flags.DEFINE_integer('seeds', 5, 'generated sets', lower_bound=1, flag_values=f)
@@ -58,14 +65,20 @@ def main(argv=None):
 
 
 def run(a):
-  if not os.path.isdir(a.workdir):
-    raise ValueError(f'{a.workdir}: evaluation needs a run directory (its config names '
-                     "the dataset; convert an authors' .pth with dusty_jax.tools.convert)")
-  params, config = generator.load(a.workdir)
-  if config is None:
-    raise ValueError(f'{a.workdir}: no config.json, so no dataset to evaluate against')
+  # The library (and JAX) load once the flags are good: --help answers at once.
+  from dusty_jax import evaluation, generator
+  from dusty_jax.data import arrays, pipeline  # (as above)
+  from dusty_jax.metrics import records  # (as above)
+  is_run = os.path.isdir(a.workdir)
+  if a.tune and not is_run:
+    raise ValueError(f'{a.workdir}: --tune saves beta in a run directory; give one')
+  params, config = tools.load_model(a.workdir)
+  if config is None and not a.data_dir:
+    raise ValueError(f'{a.workdir}: no config.json naming a dataset to evaluate against; '
+                     'give --data_dir (a prepared dataset, e.g. from python -m '
+                     'dusty_jax.tools.synthesize)')
   sensor = params.sensor
-  d = pipeline.dataset_dir(config, sensor, log=print)
+  d = a.data_dir or pipeline.dataset_dir(config, sensor, log=print)
   split = lambda name: arrays.load_split(d, name, sensor)
   tol = a.tolerance
   if a.tune:
@@ -83,8 +96,8 @@ def run(a):
   print(f'protocol {a.protocol}, {a.split} split: N = {rec["num"]} clouds of {a.points} '
         f'points, {a.seeds} seeds')
   print(records.format_table(rec['rows']))
-  out = os.path.join(a.workdir, 'evaluation.json' if a.split == 'test' else
-                     f'evaluation_{a.split}.json')
+  out = os.path.join(a.workdir if is_run else '.', 'evaluation.json' if a.split == 'test'
+                     else f'evaluation_{a.split}.json')
   with open(out, 'w') as f:
     json.dump(rec, f, indent=2)
   print(f'saved {out}')

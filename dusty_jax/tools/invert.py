@@ -3,6 +3,9 @@
     python -m dusty_jax.tools.invert --workdir RUN --input FILE_OR_DIR \\
         [--corrupt drop:0.9|beams:8|noise:0.01] [--init random|encoder] --out DIR
 
+RUN is a training run directory, a pretrained model's name (``--workdir
+sim-dusty1``), a generator ``.npz`` or an authors' ``.pth``.
+
 Inputs: KITTI ``.bin`` files (unfolded with the run's sensor), or ``.npy``
 holding metric depth (H, W) or (N, H, W) (the prepared format). Writes per
 scan ``NAME_inv_depth.npy`` (complete x_tilde), ``NAME_measurability.npy``,
@@ -36,7 +39,7 @@ from dusty_jax import tools
 
 def main(argv=None):
   f = flags.FlagValues()
-  flags.DEFINE_string('workdir', None, "training run directory (or an authors' .pth)",
+  flags.DEFINE_string('workdir', None, tools.model_help('the generator'),
                       flag_values=f, required=True)
   flags.DEFINE_string('input', None, '.bin/.npy file or directory', flag_values=f)
   flags.DEFINE_string('split', None, 'evaluate over this prepared split instead',
@@ -81,7 +84,7 @@ def write_scan(stem: str, clean, target, res):
 def run(a):
   # The library (and JAX) load once the flags are good: --help and a bad flag
   # answer at once.
-  from dusty_jax import corrupt, evaluation, generator
+  from dusty_jax import corrupt, evaluation, pretrained
   from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
   from dusty_jax.metrics import reconstruction, records  # (as above)
 
@@ -89,10 +92,10 @@ def run(a):
     raise ValueError('give exactly one of --input and --split')
   if a.corrupt:
     corrupt.parse(a.corrupt)
-  params, config = generator.load(a.workdir)
+  params, config = tools.load_model(a.workdir)
   if a.init == 'encoder':
     from dusty_jax import encoder  # only for this start
-    encoder.check_has_encoder(params, a.workdir)
+    encoder.check_has_encoder(params, a.workdir, pretrained.with_encoder())
   sensor = params.sensor
   truth = None
   if a.input:

@@ -14,8 +14,6 @@ import os
 from absl import flags
 
 from dusty_jax import tools
-from dusty_jax.data import synthetic
-from dusty_jax.sensor import get_sensor
 
 
 def main(argv=None):
@@ -34,6 +32,9 @@ def main(argv=None):
   flags.DEFINE_integer('workers', os.cpu_count() or 1, 'processes', lower_bound=1,
                        flag_values=f)
   tools.parse(f, argv, __doc__)
+  # The simulator (and JAX) load once the flags are good: --help answers at once.
+  from dusty_jax.data import synthetic
+  from dusty_jax.sensor import get_sensor  # (as above)
   sensor = tools.run(get_sensor, f.sensor)
   small = max(f.num // 10, 1)
   splits = {'train': f.num, 'val': small if f.val is None else f.val,

@@ -1,8 +1,8 @@
 """Trains the encoder that starts GAN inversion, for one trained generator.
 
-    python -m dusty_jax.tools.train_encoder --workdir RUN [--steps 3000] [--batch 32]
+    python -m dusty_jax.tools.train_encoder --workdir RUN [--steps 600] [--batch 32]
 
-Reads the run's EMA generator (frozen), trains an encoder (encoder.py) on
+Reads the run's EMA generator (frozen), trains an encoder (encoder.train) on
 the generator's own samples with random corruptions, checkpoints into
 ``RUN/encoder/`` (a rerun resumes there) and writes ``RUN/encoder.npz``,
 which ``load_checkpoint(RUN)`` then attaches, so that
@@ -13,18 +13,12 @@ work. ``--export NAME.npz`` also writes generator + encoder as one file.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
-import sys
-import time
 
 import numpy as np
 from absl import flags
 
 from dusty_jax import tools
-
-OPTIONS_FILE = 'options.json'
-SAVE_EVERY = 250
 
 
 def main(argv=None):
@@ -62,24 +56,6 @@ def main(argv=None):
   print(f'wrote {path}')
 
 
-def _check_options(directory: str, opts) -> None:
-  """A resumed training must keep its options (the schedule depends on them)."""
-  path = os.path.join(directory, OPTIONS_FILE)
-  mine = dataclasses.asdict(opts)
-  if os.path.isfile(path):
-    with open(path) as fh:
-      saved = json.load(fh)
-    if saved != mine:
-      diff = {k: (saved.get(k), v) for k, v in mine.items() if saved.get(k) != v}
-      raise ValueError(f'{directory} holds an encoder training with other options '
-                       f'(saved, given): {diff}; give the same flags to resume, or '
-                       'remove that folder to start again')
-  else:
-    os.makedirs(directory, exist_ok=True)
-    with open(path, 'w') as fh:
-      json.dump(mine, fh, indent=2)
-
-
 def _training_scans(workdir: str, config, sensor):
   """The run's training split, normalised inverse depth (N, H, W)."""
   # The data pipeline only when the real-scan term is on.
@@ -93,55 +69,23 @@ def _training_scans(workdir: str, config, sensor):
 
 
 def train(workdir: str, opts, export: str = '') -> str:
-  import jax
-  import tqdm
+  """encoder.train on the run ``workdir``'s generator; writes RUN/encoder.npz
+  (and ``export``). Returns what was written."""
   # The library (and JAX) load once the flags are good.
-  from dusty_jax import checkpoint, encoder, generator
+  from dusty_jax import encoder, generator
 
   if not os.path.isdir(workdir):
-    raise FileNotFoundError(f'{workdir}: not a training run directory (an exported '
-                            '.npz holds no training state to add an encoder to)')
+    raise FileNotFoundError(f'{workdir}: not a training run directory (a pretrained '
+                            'model or an exported .npz holds no training state to add '
+                            'an encoder to)')
   params, config = generator.load(workdir)
-  params = params.replace(encoder=None, encoder_settings=None)
   real = _training_scans(workdir, config, params.sensor) if opts.w_real > 0 else None
-  directory = os.path.join(workdir, 'encoder')
-  _check_options(directory, opts)
   settings = encoder.EncoderSettings()
-  k_init, key = jax.random.split(jax.random.key(opts.seed))
-  enc_vars = encoder.init_variables(k_init, params, settings)
-  state = {'encoder': enc_vars, 'opt': encoder.optimizer(opts).init(enc_vars)}
-  mngr = checkpoint.manager(directory, keep=2)
-  state, step = checkpoint.restore_latest(mngr, state)
-  start = 0 if step is None else step
-  params = params.replace(encoder_settings=settings)
-  bar = tqdm.tqdm(total=opts.steps, initial=start, desc='encoder', unit='step',
-                  file=sys.stderr)
-  # Committed to the device as train_step's outputs are, so that the second
-  # step does not compile again.
-  enc_vars, opt_state = jax.device_put((state['encoder'], state['opt']),
-                                       jax.local_devices()[0])
-  t0, metrics = time.time(), {}
-  for i in range(start, opts.steps):
-    batch = None
-    if real is not None:
-      pick = np.random.default_rng((opts.seed, i)).integers(0, len(real), opts.real_batch)
-      batch = real[pick]
-    enc_vars, opt_state, metrics = encoder.train_step(
-        params, enc_vars, opt_state, jax.random.fold_in(key, i), opts, real=batch)
-    if (i + 1) % 50 == 0 or i + 1 == opts.steps:
-      bar.set_postfix({k: f'{float(v):.4f}' for k, v in metrics.items()})
-    if (i + 1) % SAVE_EVERY == 0 or i + 1 == opts.steps:
-      checkpoint.save(mngr, i + 1, {'encoder': enc_vars, 'opt': opt_state}, force=True)
-    bar.update(1)
-  bar.close()
-  checkpoint.wait(mngr)
-  info = {'steps': opts.steps, 'options': dataclasses.asdict(opts),
-          'final': {k: float(v) for k, v in metrics.items()},
-          'seconds_this_call': round(time.time() - t0, 1)}
-  path = encoder.save(os.path.join(workdir, encoder.FILE), jax.device_get(enc_vars),
-                      settings, info)
+  enc_vars, info = encoder.train(params, os.path.join(workdir, encoder.DIRECTORY), opts,
+                                 real, settings)
+  path = encoder.save(os.path.join(workdir, encoder.FILE), enc_vars, settings, info)
   if export:
-    generator.export(params.replace(encoder=enc_vars), export,
+    generator.export(params.replace(encoder=enc_vars, encoder_settings=settings), export,
                      source=f'{os.path.abspath(workdir)} + encoder ({opts.steps} steps)')
     path = f'{path} and {export}'
   return path
