@@ -52,6 +52,26 @@ def test_auc_within_rows_counts_only_pairs_of_one_row():
   assert ground_truth.roc_auc(per_row[mask], label[mask]) > 0.6
 
 
+def test_ring_table_knows_the_rings_and_nothing_within_them():
+  sensor, complete, p, observed = _scene(1)
+  p = p.copy()
+  p[:, 3:] = np.linspace(0.05, 0.6, sensor.shape[0] - 3)[:, None]  # drops by ring only
+  rng = np.random.default_rng(4)
+  observed = np.where(rng.uniform(size=p.shape) < p, 0.0, complete)
+  keep = ground_truth.ring_keep_rate(observed, sensor)
+  assert keep.shape == (sensor.shape[0],)
+  assert np.allclose(keep, (observed > 0).mean(axis=(0, 2)))  # every range is in the sensor's
+  table = ground_truth.ring_table_scores(sensor, keep, observed, complete, p)
+  assert table['auc_near_within_ring'] == 0.5
+  assert table['auc_surface'] > 0.6  # the rings' rates differ
+  # Its scores are measurability_scores' of the broadcast table.
+  same = ground_truth.measurability_scores(
+      sensor, np.broadcast_to(keep[None, :, None], observed.shape), observed, complete, p)
+  assert table['auc_near'] == same['auc_near'] and table['ece'] == same['ece']
+  with pytest.raises(ValueError, match='rings'):
+    ground_truth.ring_table_scores(sensor, keep[:-1], observed, complete, p)
+
+
 def test_perfect_model_scores_perfectly():
   sensor, complete, p, observed = _scene()
   x = np.asarray(codec.encode(complete, sensor))

@@ -132,6 +132,31 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
   }
 
 
+def ring_keep_rate(observed, sensor) -> np.ndarray:
+  """(H,) the fraction of pixels that returned a point in each ring (row) of
+  the metric depth scans ``observed`` (B, H, W; 0 or out of range: dropped)."""
+  observed = np.asarray(observed, np.float32)
+  if not len(observed):
+    raise ValueError('ring_keep_rate: no scans to count returns in')
+  return np.asarray(codec.valid_depth(observed, sensor), np.float64).mean(axis=(0, 2))
+
+
+def ring_table_scores(sensor, ring_keep, observed, complete, drop_prob,
+                      bins: int = 10, near: float = NEAR_M) -> dict:
+  """:func:`measurability_scores` of a model-free table: each pixel's
+  measurability is its ring's keep rate ``ring_keep`` (H,), e.g. the
+  training split's (:func:`ring_keep_rate`), scored on other scans. A
+  measurability earns its place by beating it; within rings it scores 0.5
+  by construction."""
+  ring_keep = np.asarray(ring_keep, np.float64)
+  observed = np.asarray(observed)
+  if ring_keep.shape != observed.shape[1:2]:
+    raise ValueError(f'ring_keep has shape {ring_keep.shape}; the scans have '
+                     f'{observed.shape[1]} rings')
+  table = np.broadcast_to(ring_keep[None, :, None], observed.shape)
+  return measurability_scores(sensor, table, observed, complete, drop_prob, bins, near)
+
+
 def measurability_scores(sensor, measurability, observed, complete, drop_prob,
                          bins: int = 10, near: float = NEAR_M) -> dict:
   """A measurability (B, H, W) against the returns of ``observed`` and the
