@@ -11,6 +11,13 @@ from dusty_jax.data import arrays
 from dusty_jax.sensor import SensorSpec
 
 
+# CPU seconds per simulated 64x256 scan, all in (workers' start-up, writing):
+# the default data (2,400 scans) took 40.9 s of CPU, parent and workers, on a
+# 2-core AMD EPYC VM; 59 s of wall time there under a load average of 9-14
+# from other jobs (benchmarks/synthesize.py --full, results/synthesize.json).
+SIMULATION_CPU_S = 0.017
+
+
 def default_cache() -> str:
   return os.environ.get('DUSTY_JAX_CACHE',
                         os.path.join(os.path.expanduser('~'), '.cache', 'dusty_jax'))
@@ -44,11 +51,14 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
     # Imported here: the simulator's import cost (about 1.5 s), paid only
     # when no cached dataset exists.
     from dusty_jax.data import synthetic
-    log(f'simulating {config.data.num_synthetic} training scans into {directory} '
-        '(once; cached)')
-    synthetic.write_dataset(directory, sensor, config.data.num_synthetic,
-                            seed=config.data.seed,
-                            workers=max(os.cpu_count() or 1, 1))
+    n, workers = config.data.num_synthetic, max(os.cpu_count() or 1, 1)
+    scans = n + 2 * max(n // 10, 1)  # train, val, test (write_dataset)
+    log(f'simulating {n} training scans (+ val, test: {scans} in all) into '
+        f'{directory}, once (cached): about {scans * SIMULATION_CPU_S / workers:.0f} s '
+        f'with {workers} idle cores (the default 2,400 took 41 CPU-s on a 2-core '
+        'AMD EPYC VM)')
+    synthetic.write_dataset(directory, sensor, n, seed=config.data.seed,
+                            workers=workers)
   return directory
 
 
