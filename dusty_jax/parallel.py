@@ -6,34 +6,55 @@ JAX 0.8): the state is replicated, the batch is split along its first axis,
 and the per-device step ``pmean``-s its gradients over ``'data'``. Several
 hosts join with :func:`initialize_distributed`; the mesh then spans every
 device of every process, and each process feeds its own slice of the batch.
+
+The processes of a run also keep watch on each other (:class:`PeerWatch`),
+and agree on what each holds (:func:`hold_workdir`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import faulthandler
+import fcntl
+import itertools
 import os
+import socket
+import sys
+import threading
+import time
 
 import jax
 import numpy as np
+from jax._src import distributed as jax_distributed
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from dusty_jax import configs
+from dusty_jax import configs, errors
 
 AXIS = 'data'
+
+# Seconds without a sign of life from another process of the run after which
+# a process gives up (train.py's --peer_timeout).
+PEER_TIMEOUT_S = 60
 
 
 def initialize_distributed(coordinator: str | None = None,
                            num_processes: int | None = None,
-                           process_id: int | None = None):
+                           process_id: int | None = None,
+                           peer_timeout: float = PEER_TIMEOUT_S):
   """Joins a multi-host run when asked (flags or JAX_COORDINATOR_ADDRESS).
 
-  A no-op for a single process.
+  A no-op for a single process. JAX's own heartbeat, which ends a process
+  with a C++ abort when a peer stops, is set well beyond ``peer_timeout``,
+  so that :class:`PeerWatch` speaks first.
   """
   coordinator = coordinator or os.environ.get('JAX_COORDINATOR_ADDRESS')
   if not coordinator:
     return
   jax.distributed.initialize(coordinator_address=coordinator,
                              num_processes=num_processes,
-                             process_id=process_id)
+                             process_id=process_id,
+                             heartbeat_timeout_seconds=int(max(100, 2 * peer_timeout + 30)))
 
 
 # Measured on a 2-core CPU by benchmarks/research/speed/xla_flags.py
@@ -97,7 +118,21 @@ def data_parallel(per_device_step, mesh: Mesh, donate: bool = True):
 
 
 def replicate(tree, mesh: Mesh):
-  return jax.device_put(tree, NamedSharding(mesh, P()))
+  """``tree`` on every device of ``mesh``. Across processes each process
+  places its own copy on its own devices (a device_put onto devices of
+  another process is a cross-host transfer, which JAX's CPU backend lacks);
+  every process must pass the same values."""
+  sharding = NamedSharding(mesh, P())
+  if jax.process_count() == 1:
+    return jax.device_put(tree, sharding)
+
+  def put(x):
+    if isinstance(x, jax.Array):
+      if x.sharding.is_equivalent_to(sharding, x.ndim):
+        return x
+      x = x.addressable_data(0)  # this process's copy
+    return jax.make_array_from_process_local_data(sharding, np.asarray(x))
+  return jax.tree.map(put, tree)
 
 
 def shard_batch(local_batch: np.ndarray, mesh: Mesh):
@@ -118,3 +153,170 @@ def local_batch_size(global_batch: int, mesh: Mesh) -> int:
 def to_host(tree):
   """Fetches replicated arrays to numpy (one copy, not a device axis)."""
   return jax.tree.map(lambda x: np.asarray(jax.device_get(x)), tree)
+
+
+# ----------------------------------------------------------------------------
+# The processes of a run: a watch on each other, and agreement.
+# ----------------------------------------------------------------------------
+
+LOST_EXIT = 1  # as cli.FAILED
+_keys = itertools.count()  # each process makes the same calls in the same order
+
+
+def _client():
+  # JAX's coordination-service client: private, read as orbax's own
+  # multihost.get_jax_distributed_client does.
+  return jax_distributed.global_state.client
+
+
+def joined() -> bool:
+  """Whether this process joined a multi-process run (starts no backend)."""
+  return _client() is not None
+
+
+def _namespace(name: str) -> str:
+  return f'dusty_jax/{name}/{next(_keys)}'
+
+
+def all_texts(name: str, text: str, timeout: float = 3600.0) -> list[str]:
+  """Every process's ``text``, in process order (all must call it)."""
+  if jax.process_count() == 1:
+    return [text]
+  client, key = _client(), _namespace(name)
+  client.key_value_set(f'{key}/{jax.process_index()}', 'v' + text)
+  return [client.blocking_key_value_get(f'{key}/{p}', int(timeout * 1000))[1:]
+          for p in range(jax.process_count())]
+
+
+def fail_now(message: str):
+  """Prints ``error: message`` and ends this process at once: a process
+  whose peer is lost cannot finish (JAX's exit handler would wait for the
+  peer at its shutdown barrier, then abort with a C++ stack trace). With
+  DUSTY_JAX_TRACEBACK=1 the stacks of all threads follow the line."""
+  print(f'error: {message}', file=sys.stderr, flush=True)
+  if os.environ.get('DUSTY_JAX_TRACEBACK'):
+    faulthandler.dump_traceback(all_threads=True)
+  sys.stdout.flush()
+  os._exit(LOST_EXIT)  # pylint: disable=protected-access
+
+
+def is_peer_loss(e: BaseException) -> bool:
+  """Whether a runtime error of a multi-process run is a lost peer: a
+  collective (Gloo, NCCL) or the coordination service that lost a process."""
+  return jax.process_count() > 1 and isinstance(e, jax.errors.JaxRuntimeError) and any(
+      w in str(e) for w in ('Gloo', 'NCCL', 'Connection reset', 'Connection refused',
+                            'heartbeat', 'UNAVAILABLE', 'coordination service'))
+
+
+class PeerWatch:
+  """Ends this process, in one line, when another process of the run stops.
+
+  Each process beats (a counter it raises every ``timeout / 10`` s) in JAX's
+  coordination service; a peer whose beat stops for ``timeout`` seconds, or
+  a coordination service (process 0) that stops answering for as long, is
+  lost: ``fail_now(describe(reason))``. Beats come from a thread of their
+  own, so a long compilation or a blocked collective does not stop them. A
+  process that ends its work calls :meth:`finish` (its peers stop watching
+  it); :meth:`close` alone stops watching. A no-op for one process.
+  """
+
+  def __init__(self, timeout: float, describe):
+    self.timeout, self.describe = float(timeout), describe
+    self.n, self.me = jax.process_count(), jax.process_index()
+    self._stop = threading.Event()
+    if self.n == 1:
+      return
+    self._client, self._key = _client(), _namespace('beat')
+    now = time.monotonic()
+    self._seen = {p: (None, now) for p in range(self.n) if p != self.me}
+    self._answered = now  # the last time the coordination service answered
+    self._period = max(self.timeout / 10, 0.1)
+    for target in (self._beat, self._judge):
+      threading.Thread(target=target, daemon=True, name=f'dusty_jax{target.__name__}').start()
+
+  def _beat(self):
+    beat = 0
+    while not self._stop.wait(self._period):
+      try:
+        self._client.key_value_set(f'{self._key}/{self.me}', str(beat), allow_overwrite=True)
+        beat += 1
+        for p, (value, _) in list(self._seen.items()):
+          try:
+            now_value = self._client.key_value_try_get(f'{self._key}/{p}')
+          except jax.errors.JaxRuntimeError as e:
+            if 'NOT_FOUND' in str(e):
+              continue  # no beat yet
+            raise
+          if now_value == 'done':
+            del self._seen[p]
+          elif now_value != value:
+            self._seen[p] = (now_value, time.monotonic())
+        self._answered = time.monotonic()
+      except Exception:  # the service is gone: _judge tells when it is lost.
+        pass
+
+  def _judge(self):
+    while not self._stop.wait(self._period):
+      now = time.monotonic()
+      if now - self._answered > self.timeout:
+        self.lost(f'the coordination service (process 0) gave no answer for '
+                  f'{self.timeout:g} s')
+      for p, (_, since) in list(self._seen.items()):
+        if now - since > self.timeout:
+          self.lost(f'process {p} gave no sign of life for {self.timeout:g} s')
+
+  def lost(self, reason: str):
+    """Ends this process: a peer is lost for ``reason``."""
+    self._stop.set()
+    fail_now(self.describe(reason))
+
+  def finish(self):
+    """This process's work is done: peers stop watching it; stops the watch."""
+    if self.n > 1 and not self._stop.is_set():
+      self._stop.set()
+      with contextlib.suppress(Exception):
+        self._client.key_value_set(f'{self._key}/{self.me}', 'done', allow_overwrite=True)
+
+  def close(self):
+    self._stop.set()
+
+
+# One training per run directory: a lock file per process of the run (so a
+# run's own processes do not refuse each other, and another run's do).
+LOCK_FILE = 'train.lock'
+
+
+class WorkdirInUse(errors.UserError):
+  """Another training holds the run directory."""
+
+
+@contextlib.contextmanager
+def hold_workdir(workdir: str):
+  """Holds ``workdir`` for this training: an OS lock (flock) on
+  ``train.lock`` in it (``train.lock.K`` for process K of a multi-process
+  run), naming its holder's pid and host. The OS drops the lock when the
+  process ends, kill -9 included, so nothing is left to clean by hand. If
+  any process of the run finds its lock held, every process refuses, in
+  one line naming the holder, before anything is written."""
+  os.makedirs(workdir, exist_ok=True)
+  k = jax.process_index()
+  path = os.path.join(workdir, LOCK_FILE + (f'.{k}' if k else ''))
+  fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+  try:
+    refused = ''
+    try:
+      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as e:
+      if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+        raise
+      holder = os.pread(fd, 256, 0).decode(errors='replace').strip()
+      refused = f'{path} is held by {holder or "a training just starting"}'
+    refusals = [r for r in all_texts('lock', refused) if r]
+    if refusals:
+      raise WorkdirInUse(f'{workdir} is in use by another training ({"; ".join(refusals)}); '
+                         'wait for it to end, or use another --workdir')
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f'pid {os.getpid()} on host {socket.gethostname()}\n'.encode(), 0)
+    yield
+  finally:
+    os.close(fd)  # releases the lock
