@@ -136,10 +136,21 @@ def manager(workdir: str, keep: int = 3, interval: int = 1,
   """The run's checkpoint manager: the last ``keep`` steps, and with
   ``keep_every`` also every step that is a multiple of it."""
   path = os.path.join(os.path.abspath(workdir), DIRECTORY)
+  # cleanup_tmp_directories: a save cut short (a kill, a lost peer) leaves a
+  # step's tmp directory, which would block saving that step again; the
+  # trainer holds the run directory alone (parallel.hold_workdir).
   opts = ocp.CheckpointManagerOptions(max_to_keep=keep, keep_period=keep_every or None,
-                                      save_interval_steps=interval, create=True)
+                                      save_interval_steps=interval, create=True,
+                                      cleanup_tmp_directories=True)
   with quiet():  # it reads every step's metadata, warning about damaged ones.
     return ocp.CheckpointManager(path, options=opts)
+
+
+def saved_steps(workdir: str) -> list[int]:
+  """The steps of a run's finished checkpoints, oldest first (a save in
+  progress is not among them); reads the directory only."""
+  path = os.path.join(os.path.abspath(workdir), DIRECTORY)
+  return sorted(ocp.utils.checkpoint_steps(path)) if os.path.isdir(path) else []
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
@@ -219,7 +230,8 @@ def _write_errors(mngr, step):
 
 
 def restore(mngr: ocp.CheckpointManager, step: int, target):
-  """The state saved at ``step``, shaped like ``target``."""
+  """The state saved at ``step``, shaped and placed like ``target``: each
+  process reads the part that its own devices hold."""
   abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
   return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
 
@@ -240,6 +252,10 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
     return target, None
 
   def move_aside(step):
+    if jax.process_index() != 0:  # the primary process moves it for all.
+      with quiet():
+        mngr.reload()
+      return
     src = os.path.join(str(mngr.directory), str(step))
     dst = os.path.join(os.path.dirname(str(mngr.directory).rstrip('/')),
                        'checkpoints_damaged', f'{step}_{int(time.time())}')
