@@ -12,10 +12,17 @@ benchmarks/results/compare_commits.json.
 
 Timings on a shared machine are noisy; ``--hlo`` first answers the sharper
 question of whether the two commits compile the train step to the same
-program: it compiles a small DUSty-I step (R1 every step, and lazy R1) with
-each commit and compares XLA's optimised HLO instruction by instruction,
-names, numbers and source locations left out. Identical programs run at
-the same speed whatever the timings say. Where the programs differ,
+program: it compiles each of HLO_CONFIGS (a small DUSty-I step with R1
+every step and lazy R1; the study's CPU-scale DUSty-I with the authors'
+training and with the 'far' drops preset) with each commit and compares
+XLA's optimised HLO instruction by instruction, names, numbers and source
+locations left out: the whole step ('step') and the state update alone,
+its logged metrics left to dead-code elimination ('update'). Identical
+programs run at the same speed whatever the timings say. The configs are
+built by this checkout and read by each commit through its configs.upgrade.
+``--before`` and ``--after`` also take a directory holding a checkout
+(``--after .``: this working tree as it is); ``--rounds 0`` skips the
+timings. Where the programs differ,
 ``--outputs`` shows whether they compute the same function: each commit
 computes, on the same inputs (DUSty-I, channels 16..64, batch 4), the generator's
 outputs and the gradients of G's loss, D's loss and the R1 penalty with
@@ -25,6 +32,7 @@ array's largest magnitude is printed (float32 rounding: ~1e-6).
 """
 
 import argparse
+import hashlib
 import json
 import os
 import statistics
@@ -35,6 +43,7 @@ import tempfile
 import numpy as np
 
 import common
+from dusty_jax import configs
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -59,21 +68,24 @@ def measure(tree: str, args, out: str) -> dict:
           for r in rows}
 
 
-# Compiles a small train step with the library on PYTHONPATH and prints its
-# optimised HLO instructions, canonicalised (no names, numbers or locations).
+# Compiles the train step of a config (JSON, argv[1]) with the library on
+# PYTHONPATH, whole (argv[2] 'step') or its state update alone ('update'),
+# and prints its optimised HLO instructions, canonicalised (no names,
+# numbers or locations).
 HLO_SNIPPET = r"""
-import re, sys, jax, numpy as np
+import json, re, sys, jax, numpy as np
 from dusty_jax import configs, parallel, trainer
-from dusty_jax.sensor import get_sensor
-c = configs.default()
-c.model, c.impl, c.batch_size, c.r1_every = 'dusty1', 'matmul', 4, int(sys.argv[1])
-c.latent_dim, c.ch_base, c.ch_max = 32, 8, 32
-sensor = get_sensor('kitti')
+from dusty_jax.sensor import from_config
+c = configs.upgrade(json.loads(sys.argv[1]))
+sensor = from_config(c.sensor)
 setup = trainer.make_setup(c, sensor)
+fn = trainer.step_fn(setup)
+if sys.argv[2] == 'update':
+  fn = (lambda step: lambda *a: (step(*a)[0], {}))(fn)
 mesh = parallel.data_mesh()
-step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+step = parallel.data_parallel(fn, mesh)
 state = parallel.replicate(trainer.init_state(setup, jax.random.key(0)), mesh)
-x = parallel.shard_batch(np.zeros((4,) + sensor.shape, np.float32), mesh)
+x = parallel.shard_batch(np.zeros((c.batch_size,) + sensor.shape, np.float32), mesh)
 text = step.lower(state, x, jax.random.key(1)).compile().as_text()
 for line in text.splitlines():
   if '=' in line and '(' in line and not re.search(r'file_name_id|file_location_id', line):
@@ -81,6 +93,28 @@ for line in text.splitlines():
     line = re.sub(r'%[\w.\-]+', '%x', line)  # names follow Python function names
     print(re.sub(r'[0-9]+', 'N', line))
 """
+
+
+def _small(r1_every: int):
+  c = configs.default()
+  c.model, c.impl, c.batch_size, c.r1_every = 'dusty1', 'matmul', 4, r1_every
+  c.latent_dim, c.ch_base, c.ch_max = 32, 8, 32
+  return c
+
+
+def _study(model, preset):
+  c = configs.study(model, preset, 'cpu')
+  c.impl = 'matmul'
+  return c
+
+
+# name -> config whose step --hlo compiles.
+HLO_CONFIGS = {
+    'small dusty1, R1 every 1': lambda: _small(1),
+    'small dusty1, R1 every 4': lambda: _small(4),
+    'study dusty1,authors,cpu': lambda: _study('dusty1', 'authors'),
+    'study dusty1,far,cpu': lambda: _study('dusty1', 'far'),
+}
 
 
 # The same function? Outputs and gradients of a small DUSty-I on fixed
@@ -130,12 +164,18 @@ def same_function(trees: dict, tmp: str) -> dict:
           for k in sorted(b)}
 
 
-def compiled_program(tree: str, r1_every: int) -> list:
+def compiled_program(tree: str, config, what: str = 'step') -> list:
+  """The canonical HLO lines of ``config``'s train step compiled in ``tree``
+  (``what``: 'step', or 'update' without the metrics)."""
   # In the tree: `python -c` puts the working directory ahead of PYTHONPATH.
   env = dict(os.environ, PYTHONPATH=tree, JAX_PLATFORMS='cpu')
+  env.pop('XLA_FLAGS', None)  # one CPU device in both
   code = HLO_SNIPPET + "\nprint('LIBRARY', __import__('dusty_jax').__file__)"
-  out = subprocess.run([sys.executable, '-c', code, str(r1_every)], env=env, cwd=tree,
-                       check=True, capture_output=True, text=True).stdout
+  run = subprocess.run([sys.executable, '-c', code, config.to_json(), what], env=env,
+                       cwd=tree, capture_output=True, text=True)
+  if run.returncode:
+    raise RuntimeError(f'compiling in {tree} failed:\n{run.stderr[-3000:]}')
+  out = run.stdout
   lines = out.splitlines()
   library = [l.split(' ', 1)[1] for l in lines if l.startswith('LIBRARY ')]
   if not library or not os.path.realpath(library[0]).startswith(os.path.realpath(tree)):
@@ -156,31 +196,50 @@ def main():
   p.add_argument('--outputs', action='store_true',
                  help='compare outputs and gradients on fixed inputs before timing')
   p.add_argument('--hlo', action='store_true',
-                 help='compare the compiled programs (small step) before timing')
+                 help='compare the compiled programs (HLO_CONFIGS) before timing')
+  p.add_argument('--hlo_configs', default='',
+                 help='with --hlo: only the HLO_CONFIGS whose name holds one of these '
+                      '(comma-separated)')
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'compare_commits.json'))
   a = p.parse_args()
   common.print_banner()
-  revs = {'before': git('rev-parse', '--short', a.before),
-          'after': git('rev-parse', '--short', a.after)}
-  print(f'before {revs["before"]} ({git("log", "-1", "--format=%s", a.before)[:60]})')
-  print(f'after  {revs["after"]} ({git("log", "-1", "--format=%s", a.after)[:60]})')
+  revs = {n: os.path.abspath(r) if os.path.isdir(r) else git('rev-parse', '--short', r)
+          for n, r in (('before', a.before), ('after', a.after))}
+  for n, r in revs.items():
+    what = 'a checkout on disk' if os.path.isdir(r) else git('log', '-1', '--format=%s', r)[:60]
+    print(f'{n:6s} {r} ({what})')
   runs = {'before': [], 'after': []}
   hlo = rel = None
   with tempfile.TemporaryDirectory() as tmp:
     trees = {}
     for name, rev in revs.items():
+      if os.path.isdir(rev):
+        trees[name] = rev
+        continue
       trees[name] = os.path.join(tmp, name)
       git('worktree', 'add', '--detach', trees[name], rev)
     try:
       if a.hlo:
-        same = {}
-        for r1_every in (1, 4):
-          progs = {n: compiled_program(trees[n], r1_every) for n in trees}
-          same[r1_every] = progs['before'] == progs['after']
-          print(f'compiled train step (small DUSty-I, R1 every {r1_every}): '
-                f'{len(progs["before"])} vs {len(progs["after"])} HLO instructions, '
-                f'{"identical" if same[r1_every] else "DIFFERENT"}', flush=True)
-        hlo = {f'r1_every_{k}': v for k, v in same.items()}
+        hlo = {}
+        wanted = [w for w in a.hlo_configs.split(',') if w]
+        for name, make in HLO_CONFIGS.items():
+          if wanted and not any(w in name for w in wanted):
+            continue
+          for what in ('step', 'update'):
+            progs = {n: compiled_program(trees[n], make(), what) for n in trees}
+            same = progs['before'] == progs['after']
+            only = {n: len(set(progs[n]) - set(progs[o]))
+                    for n, o in (('before', 'after'), ('after', 'before'))}
+            hlo[f'{name}: {what}'] = dict(
+                identical=same, instructions=[len(progs['before']), len(progs['after'])],
+                sha256={n: hashlib.sha256('\n'.join(p).encode()).hexdigest()[:16]
+                        for n, p in progs.items()},
+                distinct_lines_only_in=only)
+            print(f'compiled train step ({name}, {what}): {len(progs["before"])} vs '
+                  f'{len(progs["after"])} HLO instructions, '
+                  f'{"identical" if same else "DIFFERENT"}'
+                  + ('' if same else f' (distinct lines only before / after: '
+                                     f'{only["before"]} / {only["after"]})'), flush=True)
       if a.outputs:
         rel = same_function(trees, tmp)
         worst = max(rel, key=rel.get)
@@ -193,8 +252,9 @@ def main():
           print(f'round {r + 1} {name:6s} ' + ', '.join(
               f'{k}: {v:.2f} s' for k, v in res.items()), flush=True)
     finally:
-      for t in trees.values():
-        git('worktree', 'remove', '--force', t)
+      for name, t in trees.items():
+        if not os.path.isdir(revs[name]):
+          git('worktree', 'remove', '--force', t)
   summary = {}
   for k in (runs['before'][0] if runs['before'] else {}):
     b = statistics.median(x[k] for x in runs['before'])

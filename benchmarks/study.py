@@ -2,7 +2,7 @@
 
     python benchmarks/study.py --workdir runs/study [--scale cpu|paper]
 
-Trains the three models (experiments/study_*.py) on simulated HDL-64E scans,
+Trains the three models (experiments/study.py) on simulated HDL-64E scans,
 one after the other, each resuming where a previous call stopped; then
 evaluates them on the simulated test split, whose complete depth and true
 drop probability are known, and writes the report:
@@ -41,23 +41,16 @@ import numpy as np
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODELS = ('baseline', 'dusty1', 'dusty2', 'dusty1_noaug', 'dusty1_drops', 'dusty2_drops',
-          'dusty1_rangedrops', 'dusty2_rangedrops', 'dusty1_headdrops', 'dusty2_headdrops',
-          'dusty1_detdrops', 'dusty2_detdrops', 'dusty1_dipdrops', 'dusty2_dipdrops',
-          'dusty1_peakdrops', 'dusty1_fardrops', 'dusty2_fardrops')
+# Run name -> (model, drops preset) of configs.study (experiments/study.py).
+RUNS = {'baseline': ('baseline', 'authors'), 'dusty1': ('dusty1', 'authors'),
+        'dusty2': ('dusty2', 'authors'), 'dusty1_dipdrops': ('dusty1', 'dips'),
+        'dusty2_dipdrops': ('dusty2', 'dips'), 'dusty1_fardrops': ('dusty1', 'far'),
+        'dusty2_fardrops': ('dusty2', 'far')}
+MODELS = tuple(RUNS)
 TRADE_RUN = 'dusty1'  # the run whose inversion time vs quality (trade) is measured
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
-          'dusty1_noaug': 'DUSty-I, no DiffAugment',
-          'dusty1_drops': 'DUSty-I, drops variant', 'dusty2_drops': 'DUSty-II, drops variant',
-          'dusty1_rangedrops': 'DUSty-I, drops by ring and range',
-          'dusty2_rangedrops': 'DUSty-II, drops by ring and range',
-          'dusty1_headdrops': 'DUSty-I, drops by ring and range, head only',
-          'dusty2_headdrops': 'DUSty-II, drops by ring and range, head only',
-          'dusty1_detdrops': 'DUSty-I, drops by ring and range, mask detached',
-          'dusty2_detdrops': 'DUSty-II, drops by ring and range, mask detached',
           'dusty1_dipdrops': 'DUSty-I, mask detached, dips filled',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled',
-          'dusty1_peakdrops': 'DUSty-I, mask detached, dips filled, peaks held',
           'dusty1_fardrops': 'DUSty-I, peaks held, far returns held',
           'dusty2_fardrops': 'DUSty-II, peaks held, far returns held'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
@@ -75,7 +68,7 @@ def parse_args(argv=None):
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   p.add_argument('--scale', default='cpu', choices=('cpu', 'paper'))
   p.add_argument('--models', default=','.join(MODELS[:3]),
-                 help=f'of {MODELS}; dusty1_noaug is the diagnosis variant')
+                 help=f'of {MODELS}')
   p.add_argument('--steps', type=int, default=None, help='override num_steps')
   p.add_argument('--train-only', action='store_true')
   p.add_argument('--eval-only', action='store_true')
@@ -107,7 +100,7 @@ def parse_args(argv=None):
 
 def model_config(model, a):
   from dusty_jax import configs
-  c = configs.study(model, a.scale)  # 'dusty1_noaug': see configs.study
+  c = configs.study(*RUNS[model], a.scale)
   if a.steps:
     c.num_steps = a.steps
   return c
@@ -447,11 +440,11 @@ def report(results, trade_result, trade_model, train_seconds, a, machine, kitti_
               ' trained by an earlier run of this study with the same settings); with'
               f' `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
               ' sections are that run\'s, the rest computed here.', '']
-  from dusty_jax import configs
-  for suffix, options in configs.STUDY_DROPS.items():
-    if any(m.endswith(suffix) for m in results):
-      lines += [f'The *{suffix} models (beyond the paper, README "Point-drops that survive'
-                f' training") add `drops` options {options}.', '']
+  from dusty_jax import drops
+  for preset in sorted({RUNS[m][1] for m in results} - {'authors'}):
+    runs = ', '.join(m for m in results if RUNS[m][1] == preset)
+    lines += [f'{runs} (beyond the paper, dusty_jax/drops.py) add the `drops` preset'
+              f' {preset!r}: {drops.PRESETS[preset]}.', '']
   lines += [
       f'## Synthesis (Table II layout; N = {first["synthesis"]["num"]} clouds of'
       f' {first["synthesis"]["points"]} points, {first["synthesis"]["seeds"]} seeds)',
@@ -567,9 +560,7 @@ def main(argv=None):
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   restoration_file = picture_restoration(a.workdir, params_by_model,
                                          os.path.join(a.out, 'study_restoration.png'))
-  variant = next((m for m in ('dusty1_fardrops', 'dusty1_peakdrops', 'dusty1_dipdrops',
-                              'dusty1_detdrops', 'dusty1_headdrops', 'dusty1_rangedrops',
-                              'dusty1_drops')
+  variant = next((m for m in ('dusty1_fardrops', 'dusty1_dipdrops')
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))
@@ -582,15 +573,17 @@ def main(argv=None):
                      'results': results, 'trade': trade_result}, indent=1)
   print(text)
   if a.export:
-    from dusty_jax import configs, pretrained
+    from dusty_jax import pretrained
     for m, name in EXPORT_NAMES.items():
       if m in params_by_model and m not in seeded:
         config = dusty_jax.load_checkpoint(os.path.join(a.workdir, m))[1]
-        training = {'config': f'experiments/study_{m}.py', 'scale': a.scale,
+        model, preset = RUNS[m]
+        training = {'config': f'experiments/study.py:{model},{preset},{a.scale}',
+                    'preset': preset, 'scale': a.scale,
                     'seed': int(config.seed), 'steps': int(config.num_steps),
                     'batch_size': int(config.batch_size),
                     'augment': config.augment, 'drops': config.drops.to_dict(),
-                    'beyond_the_paper': m.endswith(tuple(configs.STUDY_DROPS))}
+                    'beyond_the_paper': preset != 'authors'}
         source = f'benchmarks/study.py --scale {a.scale} ({m})'
         options = os.path.join(a.workdir, m, 'encoder', 'options.json')
         if params_by_model[m].encoder is not None and os.path.isfile(options):

@@ -45,16 +45,13 @@ def contrast(key, x, style='authors', band=0.5):
   return mean + (x - mean) * (1.0 + band * _factor(key, x.shape[0], style))
 
 
-def translation(key, x, style='authors', ratio=1.0 / 8.0, fill=None):
-  """``fill``: the value of rows shifted in from outside (default: the
-  style's, 0 or ALPHA)."""
+def translation(key, x, style='authors', ratio=1.0 / 8.0):
   b, h, w = x.shape
   sh, sw = int(h * ratio / 2 + 0.5), int(w * ratio / 2 + 0.5)
   kh, kw = jax.random.split(key)
   dy = jax.random.randint(kh, (b,), -sh, sh + 1)
   dx = jax.random.randint(kw, (b,), -sw, sw + 1)
-  period, style_fill = (w - 1, 0.0) if style == 'authors' else (w, ALPHA)
-  fill = style_fill if fill is None else fill
+  period, fill = (w - 1, 0.0) if style == 'authors' else (w, ALPHA)
   rows = jnp.arange(h)[None, :] + dy[:, None]                   # (B, H) source rows.
   cols = jnp.mod(jnp.arange(w)[None, :] + dx[:, None], period)  # (B, W), wrapped.
   inside = (rows >= 0) & (rows < h)
@@ -63,7 +60,7 @@ def translation(key, x, style='authors', ratio=1.0 / 8.0, fill=None):
   return jnp.where(inside[:, :, None], y, fill)
 
 
-def cutout(key, x, style='authors', ratio=0.5, fill=0.0):
+def cutout(key, x, style='authors', ratio=0.5):
   b, h, w = x.shape
   ch, cw = int(h * ratio + 0.5), int(w * ratio + 0.5)
   ky, kx = jax.random.split(key)
@@ -79,12 +76,11 @@ def cutout(key, x, style='authors', ratio=0.5, fill=0.0):
     cx = jax.random.randint(kx, (b, 1, 1), 0, w)
     dx = jnp.mod(dx_ - cx + w // 2, w) - w // 2
     cut = (jnp.abs(dy_ - cy) <= ch // 2) & (jnp.abs(dx) <= cw // 2)
-  return jnp.where(cut, fill, x)
+  return jnp.where(cut, 0.0, x)
 
 
 FNS = {'brightness': brightness, 'contrast': contrast,
        'translation': translation, 'cutout': cutout}
-COLOUR = ('brightness', 'contrast')  # the rest move pixels.
 
 
 def check(policy, style):
@@ -106,34 +102,3 @@ def diff_augment(key, x, policy=POLICY, style='authors'):
 def per_example(keys, x, policy=POLICY, style='authors'):
   """diff_augment with one key per example (B keys for B scans)."""
   return jax.vmap(lambda k, xi: diff_augment(k, xi[None], policy, style)[0])(keys, x)
-
-
-def with_mask(key, x, keep, policy=POLICY, style='authors', keep_drops=False,
-              drop_const=ALPHA):
-  """DiffAugment of a scan ``x`` and its keep-mask ``keep`` (both (B, H, W)).
-
-  The same draws as :func:`diff_augment` (so ``x`` alone is augmented
-  exactly as there); the moving ops (translation, cutout) move ``keep``
-  along, filling it with 0 (no return) where they fill ``x``. With
-  ``keep_drops`` (beyond the paper) drops stay drops: the result is
-  ``keep' * aug(x) + (1 - keep') * drop_const``, so colour augmentation
-  touches returned pixels only, and pixels filled by a translation or a
-  cutout read as drops. Returns (x', keep').
-  """
-  check(policy, style)
-  for name, k in zip(policy, jax.random.split(key, max(len(policy), 1))):
-    x = FNS[name](k, x, style)
-    if name not in COLOUR:
-      keep = FNS[name](k, keep, style, fill=0.0)
-  if keep_drops:
-    x = keep * x + (1.0 - keep) * drop_const
-  return x, keep
-
-
-def per_example_with_mask(keys, x, keep, policy=POLICY, style='authors',
-                          keep_drops=False, drop_const=ALPHA):
-  """:func:`with_mask` with one key per example."""
-  fn = lambda k, xi, mi: jax.tree.map(
-      lambda v: v[0], with_mask(k, xi[None], mi[None], policy, style, keep_drops,
-                                drop_const))
-  return jax.vmap(fn)(keys, x, keep)

@@ -1,18 +1,18 @@
 """Shared defaults for every experiment; experiments/*.py override a few.
 
 The defaults train as the authors' code (kazuto1011/dusty-gan) does; every
-deviation we prefer is an option here (README: "Differences from the
-authors' code").
+deviation we prefer is an option here.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
 import ml_collections
 
-from dusty_jax import errors, models, sensor as sensor_lib
+from dusty_jax import drops as drops_lib, errors, models, sensor as sensor_lib
 
 FILE = 'config.json'  # a run's config, in its directory
 
@@ -59,54 +59,34 @@ def default() -> ml_collections.ConfigDict:
   # The authors' schedule: 25,000 kimg = 781,250 steps at batch 32.
   c.num_steps = 25_000_000 // 32
 
-  # Beyond the paper: ways to make point-drops survive training at a small
-  # scale (README "Point-drops that survive training"). All off by default.
+  # Beyond the paper: point-drop mechanisms (drops.DropOptions describes
+  # each). All off by default.
   c.drops = drop_defaults()
 
   # Logging and checkpoints.
   c.log_every = 50
   c.image_every = 500
   c.checkpoint_every = 1000
+  c.checkpoint_minutes = 10.0    # also save when this many minutes passed since the
+                                 # last save (0: by steps only)
   c.keep_checkpoints = 3
   c.keep_every = 0               # also keep each checkpoint whose step is a
                                  # multiple of this (0: none), for curves over training
   c.num_images = 8               # samples in each PNG grid
+
+  # A short evaluation when training ends (evaluation.after_training):
+  # final_evaluation.json and .png in the run directory. 0 scans: skipped.
+  c.final_eval = ml_collections.ConfigDict()
+  c.final_eval.num_synthesis = 0  # test scans of Table II (one seed)
+  c.final_eval.points = 512       # points per cloud there
+  c.final_eval.num_invert = 0     # test scans inverted (drop placement with ground truth)
+  c.final_eval.invert_steps = 300
   return c
 
 
 def drop_defaults() -> ml_collections.ConfigDict:
-  """The point-drop mechanisms (trainer.DropOptions), all off."""
-  d = ml_collections.ConfigDict()
-  d.mask_channel = 0.0    # > 0: D also sees the keep-mask, x this weight
-  d.mask_noise = 0.0      # std of Gaussian noise added to that channel
-  d.mask_dropout = 0.0    # probability of hiding that channel, per example
-  d.keep_drops = False    # DiffAugment keeps drops as drops (augment.with_mask)
-  d.mask_bias = 0.0       # initial measurability logit (logit of the keep rate)
-  d.mask_lr = 1.0         # update multiplier of the measurability head
-  d.rate_weight = 0.0     # G: + weight x (generated keep rate - real keep rate)^2
-  d.rate_by = 'image'     # image: one rate per batch | ring: one per row |
-                          # ring_depth: per row and neighbours' depth bin
-  d.rate_shrink = 0.0     # ring_depth: cell targets shrunk to the ring's rate,
-                          # as if k more pixels kept at it
-  d.rate_head_only = False  # the rate term trains the measurability head only,
-                            # on its expected keep rate
-  d.mask_detached = False   # no gradient of the mask reaches G's trunk: the
-                            # measurability head works on its features, detached
-  d.depth_weight = 0.0    # G: + weight x mean over rings of (mean returned
-                          # inverse depth - real's)^2: anchors the range
-  d.dip_weight = 0.0      # G: + weight x mean depth of the dips among its
-                          # returns (pixels behind both ring neighbours)
-  d.peak_weight = 0.0     # G: + weight x excess over the real scans' of the
-                          # mean height of its peaks (in front of both)
-  d.far_weight = 0.0      # G: + weight x mean over rings of (share of its
-                          # pixels that are returns beyond FAR_M - real's)^2
-  d.rate_skip_far = False # ring_depth: the cells beyond 40 m weigh 0 (far_weight
-                          # alone sets the far keep rate)
-  d.range_slope = False   # G: a learned slope per ring of the measurability
-                          # logit in the pixel's own x_tilde, started at 0
-  d.ring_bias = False     # G: a learned measurability offset per ring, started
-                          # at the training data's keep rate of that ring
-  return d
+  """The point-drop options (drops.DropOptions, which describes each), all off."""
+  return ml_collections.ConfigDict(dataclasses.asdict(drops_lib.DropOptions()))
 
 
 class ConfigError(errors.UserError, ValueError):
@@ -149,6 +129,15 @@ def validate(c) -> None:
     need(isinstance(c[f], int) and c[f] >= 1, f, 'must be a whole number >= 1')
   need(isinstance(c.keep_every, int) and c.keep_every >= 0, 'keep_every',
        'must be a whole number >= 0 (0: keep the last keep_checkpoints only)')
+  minutes = c.checkpoint_minutes
+  need(isinstance(minutes, (int, float)) and not isinstance(minutes, bool)
+       and 0 <= minutes < float('inf'), 'checkpoint_minutes',
+       'must be a number of minutes >= 0 (0: save by steps only)')
+  for f in ('num_synthesis', 'points', 'num_invert', 'invert_steps'):
+    v = c.final_eval[f]
+    if not (isinstance(v, int) and v >= (1 if f in ('points', 'invert_steps') else 0)):
+      raise ConfigError(f'config field final_eval.{f}={v!r}: must be a whole number >= '
+                        f'{1 if f in ("points", "invert_steps") else "0 (0: skipped)"}')
   need(c.lr > 0, 'lr', 'the learning rate must be > 0')
   need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
        else 'beta2', 'Adam betas must lie in [0, 1)')
@@ -172,46 +161,63 @@ def validate(c) -> None:
   def need_drop(ok, field, why):
     if not ok:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
-  for f in ('mask_channel', 'mask_noise', 'mask_dropout', 'rate_weight', 'rate_shrink',
-            'depth_weight', 'dip_weight', 'peak_weight', 'far_weight'):
+  for f in ('rate_weight', 'dip_weight', 'peak_weight', 'far_weight'):
     need_drop(d[f] >= 0, f, 'must be >= 0')
-  need_drop(d.mask_dropout <= 1, 'mask_dropout', 'a probability: must be <= 1')
-  need_drop(d.mask_lr > 0, 'mask_lr', 'must be > 0')
-  need_drop(d.rate_by in ('image', 'ring', 'ring_depth'), 'rate_by',
-            "must be 'image', 'ring' or 'ring_depth'")
-  need_drop(d.rate_shrink == 0 or d.rate_by == 'ring_depth', 'rate_shrink',
-            f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
+  need_drop(d.rate_by in drops_lib.RATE_BY, 'rate_by',
+            f"must be one of {', '.join(map(repr, drops_lib.RATE_BY))}")
   need_drop(not d.rate_skip_far or d.rate_by == 'ring_depth', 'rate_skip_far',
             f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
   need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
             'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
-  acting = [f for f, off in (('mask_channel', 0), ('rate_weight', 0), ('far_weight', 0),
-                             ('mask_bias', 0),
-                             ('mask_lr', 1.0), ('ring_bias', False), ('range_slope', False),
-                             ('mask_detached', False)) if d[f] != off]
+  acting = [f for f, off in (('rate_weight', 0), ('far_weight', 0), ('mask_bias', 0),
+                             ('ring_bias', False), ('mask_detached', False)) if d[f] != off]
   if acting:  # the first option set names the error
     need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act on')
 
 
 # Runs written before these options existed trained with what is now the
-# non-default choice (keep_every: kept as the default does); their
-# config.json lacks the field.
+# non-default choice (keep_every: kept as the default does; checkpoint_minutes:
+# saved by steps only); their config.json lacks the field.
 LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0,
-          'keep_every': 0}
+          'keep_every': 0, 'checkpoint_minutes': 0.0}
+
+
+# Drop options removed from the library, with the value that turned them off;
+# commit f597033 is the last that had them (their figures are in
+# benchmarks/research/drops/).
+REMOVED_DROPS = {'mask_channel': 0.0, 'mask_noise': 0.0, 'mask_dropout': 0.0,
+                 'keep_drops': False, 'mask_lr': 1.0, 'rate_shrink': 0.0,
+                 'depth_weight': 0.0, 'range_slope': False}
+LAST_WITH_REMOVED = 'f597033'
+
+
+def removed_option(field: str, value, where: str = 'config field drops.'):
+  """Raises ConfigError if ``value`` of the removed option ``field`` is not
+  the one that turned it off (a run that used it cannot be reproduced)."""
+  if value != REMOVED_DROPS[field]:
+    raise ConfigError(f'{where}{field}={value!r}: this option was removed; commit '
+                      f'{LAST_WITH_REMOVED} is the last that has it')
 
 
 def upgrade(config) -> ml_collections.ConfigDict:
   """The one translation of older configs: a copy in which each field the
-  config predates holds the value such runs used (LEGACY), and the ``drops``
-  group (runs from before it: all off) has every option."""
+  config predates holds the value such runs used (LEGACY), the ``drops``
+  group (runs from before it: all off) has every option, and the removed
+  options (REMOVED_DROPS) are gone where they were off."""
   c = ml_collections.ConfigDict(config.to_dict() if hasattr(config, 'to_dict') else config)
   for field, value in LEGACY.items():
     if field not in c:
       c[field] = value
+  old = c.drops.to_dict() if 'drops' in c else {}
+  for field in REMOVED_DROPS:
+    if field in old:
+      removed_option(field, old.pop(field))
   drops = drop_defaults()
-  drops.update(c.drops.to_dict() if 'drops' in c else {})
+  drops.update(old)
   c.drops = drops
+  if 'final_eval' not in c:  # runs from before it ended without one
+    c.final_eval = default().final_eval
   return c
 
 
@@ -221,8 +227,7 @@ def model_settings(config) -> models.ModelSettings:
   return models.ModelSettings(model=c.model, latent_dim=int(c.latent_dim),
                               ch_base=int(c.ch_base), ch_max=int(c.ch_max),
                               eqlr=c.eqlr, tau=float(c.tau),
-                              ring_bias=bool(c.drops.ring_bias),
-                              range_slope=bool(c.drops.range_slope))
+                              ring_bias=bool(c.drops.ring_bias))
 
 
 def architecture_diff(old, new) -> dict:
@@ -233,8 +238,7 @@ def architecture_diff(old, new) -> dict:
   for f in ARCHITECTURE:
     a, b = old.get(f), new.get(f)
     if f == 'drops':  # only these change what the networks' arrays are.
-      a, b = ((o.drops.mask_channel > 0, bool(o.drops.ring_bias),
-               bool(o.drops.range_slope)) for o in (old, new))
+      a, b = (bool(o.drops.ring_bias) for o in (old, new))
     if f == 'sensor':
       a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
               b.to_dict() if hasattr(b, 'to_dict') else b)
@@ -249,64 +253,21 @@ def architecture_diff(old, new) -> dict:
 STUDY_SCALES = ('cpu', 'paper')
 
 
-# The point-drop variant the study ships (beyond the paper; README "Point-drops
-# that survive training"): D sees the keep-mask as a noised channel hidden
-# half the time, G matches the real keep rate, and the measurability starts
-# at the data's keep rate (logit(0.8)).
-DROPS_VARIANT = dict(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5,
-                     rate_weight=10.0, mask_bias=1.386)
-# Drops by ring and range (README "Point-drops that survive training"): G
-# matches the real keep rate of each (ring, neighbours' depth) cell, and its
-# measurability has one learned offset per ring, started at that ring's rate.
-RANGE_DROPS_VARIANT = dict(rate_weight=100.0, rate_by='ring_depth', mask_bias=1.386,
-                           ring_bias=True)
-# The same, with the rate term training only the measurability head (on its
-# expected keep rate): G's shared trunk is left to the GAN loss.
-HEAD_DROPS_VARIANT = dict(RANGE_DROPS_VARIANT, rate_head_only=True)
-# The same, with no gradient of the mask reaching the trunk at all (the GAN's
-# straight-through one included): the trunk learns from x_tilde alone.
-DETACHED_DROPS_VARIANT = dict(HEAD_DROPS_VARIANT, mask_detached=True)
-# The same, with G also filling the dips among its returns (dip_weight): the
-# far speckle that cost the mask-detached variant its depth at other seeds
-# (README "Depth that survives the drops").
-DIP_DROPS_VARIANT = dict(DETACHED_DROPS_VARIANT, dip_weight=10.0)
-# The same, with G also paying for peaks among its returns beyond the real
-# scans' (peak_weight): the lattice of near pixels the dips variant leaves.
-PEAK_DROPS_VARIANT = dict(DIP_DROPS_VARIANT, peak_weight=10.0)
-# The same, with G also holding each ring's share of far returns (beyond
-# trainer.FAR_M, 40 m) to the real batch's (far_weight), through its drops:
-# the far structure the peaks variant returns too often (benchmarks/far_returns.py).
-# Its ring_depth rate term leaves out the cells beyond 40 m (rate_skip_far),
-# which the far term owns: chosen over five seeds on the validation split
-# (README "The rate term's far cells").
-FAR_DROPS_VARIANT = dict(PEAK_DROPS_VARIANT, far_weight=100.0, rate_skip_far=True)
-# Study model suffix -> the drops options it adds (beyond the paper).
-STUDY_DROPS = {'_drops': DROPS_VARIANT, '_rangedrops': RANGE_DROPS_VARIANT,
-               '_headdrops': HEAD_DROPS_VARIANT, '_detdrops': DETACHED_DROPS_VARIANT,
-               '_dipdrops': DIP_DROPS_VARIANT, '_peakdrops': PEAK_DROPS_VARIANT,
-               '_fardrops': FAR_DROPS_VARIANT}
-
-
-def study(model: str, scale: str = 'cpu') -> ml_collections.ConfigDict:
-  """``model``: baseline, dusty1, dusty2, dusty1_noaug (DUSty-I without
-  DiffAugment: at the CPU scale the discriminator cannot see point-drops
-  through the augmentation, see benchmarks/results/study.md), or
-  dusty1_drops / dusty2_drops (with DROPS_VARIANT), dusty1_rangedrops /
-  dusty2_rangedrops (with RANGE_DROPS_VARIANT), dusty1_headdrops /
-  dusty2_headdrops (with HEAD_DROPS_VARIANT), dusty1_detdrops /
-  dusty2_detdrops (with DETACHED_DROPS_VARIANT), dusty1_dipdrops /
-  dusty2_dipdrops (with DIP_DROPS_VARIANT), dusty1_peakdrops /
-  dusty2_peakdrops (with PEAK_DROPS_VARIANT), or dusty1_fardrops /
-  dusty2_fardrops (with FAR_DROPS_VARIANT)."""
-  if scale not in STUDY_SCALES:
-    raise ValueError(f'unknown study scale {scale!r}; known: {list(STUDY_SCALES)}')
+def study(model: str = 'dusty1', preset: str = 'authors',
+          scale: str = 'cpu') -> ml_collections.ConfigDict:
+  """The study's config: ``model`` (baseline | dusty1 | dusty2) trained on
+  simulated HDL-64E scans with the point-drop options ``preset`` (a name of
+  drops.PRESETS; 'authors': none, the paper's training) at ``scale``
+  (STUDY_SCALES). experiments/study.py takes the three as
+  ``--config experiments/study.py:MODEL,PRESET,SCALE``."""
+  for what, name, known in (('model', model, models.VARIANTS),
+                            ('preset', preset, drops_lib.PRESETS),
+                            ('scale', scale, STUDY_SCALES)):
+    if name not in known:
+      raise ConfigError(f'unknown study {what} {name!r}; known: {", ".join(known)}')
   c = default()
-  c.model = model.split('_')[0]
-  if model.endswith('_noaug'):
-    c.augment = ''
-  for suffix, options in STUDY_DROPS.items():
-    if model.endswith(suffix):
-      c.drops.update(options)
+  c.model = model
+  c.drops.update(drops_lib.PRESETS[preset])
   c.sensor.preset = 'kitti'
   c.data.dir = ''
   c.data.num_synthetic = 2000

@@ -78,8 +78,13 @@ def _from_description(d: dict, source: str):
   if d.get('format', FORMAT) > FORMAT:
     raise ValueError(f"{source}: written in generator format {d['format']} by a newer "
                      f'dusty_jax (this one reads up to {FORMAT}); upgrade dusty_jax')
+  settings = d.get('settings')
+  if isinstance(settings, dict):  # written before options left (configs.REMOVED_DROPS)
+    settings = dict(settings)
+    for field in sorted(set(settings) & set(configs.REMOVED_DROPS)):
+      configs.removed_option(field, settings.pop(field), f'{source}: settings.')
   try:
-    return (SensorSpec.from_dict(d['sensor']), ModelSettings(**d['settings']),
+    return (SensorSpec.from_dict(d['sensor']), ModelSettings(**settings),
             float(d.get('tolerance', 0.0)))
   except (KeyError, TypeError, ValueError) as e:
     raise ValueError(f'{source}: not a generator description ({e})') from None

@@ -110,11 +110,6 @@ class Generator(nn.Module):
   # a LiDAR's lasers each have their own sensitivity, and a conv net with
   # circular padding sees little of which row it is on.
   ring_bias: bool = False
-  # One slope per row of the pixel measurability logit in the pixel's own
-  # complete inverse depth (not differentiated through it), started at 0:
-  # logit += slope[row] * (x_tilde + 1). A sensor's returns weaken with
-  # range; a linear head on shared features has no direct handle on it.
-  range_slope: bool = False
 
   out_channels = property(lambda self: sum(self.head_groups))
 
@@ -145,13 +140,8 @@ class Generator(nn.Module):
     bias = self.param('head_bias', nn.initializers.zeros, (self.out_channels,))
     rows = (self.param('ring_bias', nn.initializers.zeros, (self.sensor.shape[0],))
             if self.ring_bias else None)
-    slope = (self.param('range_slope', nn.initializers.zeros, (self.sensor.shape[0],))
-             if self.range_slope else None)
     def out(features):
       y = head(features) + bias
-      if slope is not None:  # x_tilde + 1: 0 at the drop constant, 2 at the nearest
-        near = jax.lax.stop_gradient(jnp.tanh(y[..., 0])) + 1.0
-        y = y.at[..., 1].add(slope[:, None] * near)
       return y if rows is None else y.at[..., 1].add(rows[:, None])
     return (out(x), out(jax.lax.stop_gradient(x))) if detached_head else out(x)
 
@@ -305,9 +295,6 @@ class ModelSettings:
   # Beyond the paper (config drops.ring_bias): the pixel measurability logit
   # gets one learned offset per ring, i.e. per laser of the sensor.
   ring_bias: bool = False
-  # Beyond the paper (config drops.range_slope): and one learned slope per
-  # ring in the pixel's own complete inverse depth (Generator.range_slope).
-  range_slope: bool = False
 
   def __post_init__(self):
     get_variant(self.model)
@@ -325,12 +312,11 @@ class ModelSettings:
 
   def generator(self, sensor: SensorSpec, impl: str | None = None) -> Generator:
     check_shape(sensor)
-    for f in ('ring_bias', 'range_slope'):
-      if getattr(self, f) and not self.variant.has_measurability:
-        raise ValueError(f'{f}: the {self.model} model has no measurability')
+    if self.ring_bias and not self.variant.has_measurability:
+      raise ValueError(f'ring_bias: the {self.model} model has no measurability')
     return Generator(sensor, self.variant.head_groups, self.latent_dim, self.ch_base,
                      self.ch_max, impl or layers.default_impl(), self.eqlr,
-                     self.ring_bias, self.range_slope)
+                     self.ring_bias)
 
   def discriminator(self, sensor: SensorSpec, impl: str | None = None) -> 'Discriminator':
     check_shape(sensor)

@@ -8,7 +8,7 @@ import os
 import ml_collections
 import pytest
 
-from dusty_jax import cli, configs
+from dusty_jax import cli, configs, drops
 from train_helpers import tiny_config
 
 
@@ -17,10 +17,11 @@ EXPERIMENTS = os.path.join(os.path.dirname(__file__), '..', 'experiments')
 
 def test_every_experiment_config_is_complete():
   configs.validate(tiny_config())
-  for name in ('baseline', 'dusty1', 'dusty2_drops', 'dusty1_rangedrops', 'dusty1_headdrops',
-               'dusty1_detdrops', 'dusty2_detdrops', 'dusty1_dipdrops', 'dusty1_peakdrops',
-               'dusty1_fardrops', 'dusty2_fardrops'):
-    configs.validate(configs.study(name))
+  for model in ('dusty1', 'dusty2'):
+    for preset in drops.PRESETS:
+      for scale in configs.STUDY_SCALES:
+        configs.validate(configs.study(model, preset, scale))
+  configs.validate(configs.study('baseline'))
 
 
 @pytest.mark.parametrize('name', sorted(f[:-3] for f in os.listdir(EXPERIMENTS)
@@ -29,8 +30,26 @@ def test_every_experiment_file_loads_a_valid_config(name):
   c = cli._load_config(os.path.join(EXPERIMENTS, name + '.py'))
   assert c is not None, f'experiments/{name}.py does not load'
   configs.validate(c)
-  if name.startswith('study_'):  # a study file is its study model, at the CPU scale
-    assert c.to_dict() == configs.study(name[len('study_'):]).to_dict()
+
+
+@pytest.mark.parametrize('arg, want', [
+    ('', ('dusty1', 'authors', 'cpu')), ('dusty2', ('dusty2', 'authors', 'cpu')),
+    ('dusty1,far,cpu', ('dusty1', 'far', 'cpu')), ('baseline,,paper', ('baseline', 'authors',
+                                                                       'paper')),
+    (' dusty2 , dips ', ('dusty2', 'dips', 'cpu'))])
+def test_the_study_file_takes_model_preset_and_scale(arg, want):
+  path = os.path.join(EXPERIMENTS, 'study.py') + (f':{arg}' if arg else '')
+  c = cli._load_config(path)
+  assert c.to_dict() == configs.study(*want).to_dict()
+  assert c.model == want[0] and c.latent_dim == (128 if want[2] == 'cpu' else 512)
+  assert c.drops.to_dict() == dict(configs.drop_defaults().to_dict(), **drops.PRESETS[want[1]])
+
+
+@pytest.mark.parametrize('args, what', [(('dusty3',), 'model'), (('dusty1', 'channel'), 'preset'),
+                                        (('dusty1', 'far', 'gpu'), 'scale')])
+def test_an_unknown_study_name_lists_the_known_ones(args, what):
+  with pytest.raises(configs.ConfigError, match=rf'^unknown study {what} .*; known: \w+, '):
+    configs.study(*args)
 
 
 @pytest.mark.parametrize('path', ['drop_const', 'tolerance', 'ema_rampup', 'drops',

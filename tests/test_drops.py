@@ -1,14 +1,15 @@
-"""The point-drop mechanisms beyond the paper (config ``drops``), each against
-what it should compute."""
+"""The point-drop mechanisms beyond the paper (dusty_jax/drops.py, config
+``drops``), each against what it should compute."""
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dusty_jax import augment, codec, configs, parallel, trainer
+from dusty_jax import codec, configs, drops, generator, parallel, pretrained, trainer
 from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import tiny_sensor
 from train_helpers import tiny_config
@@ -21,9 +22,9 @@ def _scans_and_keep(b=8, h=16, w=64, seed=0, rate=0.3):
   return jnp.asarray(x), jnp.asarray(keep)
 
 
-def _setup(init=True, ring_keep=None, **drops):
+def _setup(init=True, ring_keep=None, **options):
   c = tiny_config()
-  c.drops.update(drops)
+  c.drops.update(options)
   configs.validate(c)
   sensor = tiny_sensor(c.sensor.height, c.sensor.width)
   setup = trainer.make_setup(c, sensor)
@@ -31,80 +32,20 @@ def _setup(init=True, ring_keep=None, **drops):
                     if init else None)
 
 
-@pytest.mark.parametrize('style', augment.STYLES)
-def test_with_mask_augments_the_scan_as_diff_augment_does(style):
-  x, keep = _scans_and_keep()
-  key = jax.random.key(3)
-  y, k = augment.with_mask(key, x, keep, augment.POLICY, style)
-  np.testing.assert_array_equal(y, augment.diff_augment(key, x, augment.POLICY, style))
-  # The mask moves with the scan: a returned pixel stays returned (the
-  # colour ops cannot bring a pixel to ALPHA where they leave the mask 1,
-  # and vice versa for moved drops outside the cut-out).
-  moved = augment.with_mask(key, keep, keep, ('translation',), style)[0]
-  np.testing.assert_array_equal(augment.with_mask(key, x, keep, ('translation',), style)[1],
-                                jnp.where(moved == (0.0 if style == 'authors' else ALPHA),
-                                          0.0, moved))
-
-
-def test_keep_drops_leaves_drops_at_the_drop_constant():
-  x, keep = _scans_and_keep()
-  key = jax.random.key(4)
-  y, k = augment.with_mask(key, x, keep, augment.POLICY, 'authors', keep_drops=True,
-                           drop_const=-2.0)
-  np.testing.assert_array_equal(np.asarray(y)[np.asarray(k) == 0], -2.0)
-  # Colour alone: returned pixels get the same brightness as DiffAugment's,
-  # drops none of it.
-  yb, kb = augment.with_mask(key, x, keep, ('brightness',), 'authors', keep_drops=True)
-  ref = augment.diff_augment(key, x, ('brightness',), 'authors')
-  np.testing.assert_array_equal(kb, keep)
-  np.testing.assert_allclose(yb, jnp.where(keep > 0, ref, ALPHA), rtol=0, atol=1e-6)
-  # Translated-in rows and the cut-out read as drops.
-  yt, kt = augment.with_mask(key, x, keep, ('translation', 'cutout'), 'authors',
-                             keep_drops=True)
-  assert float((kt == 0).mean()) > float((keep == 0).mean()) + 0.05
-
-
-def test_mask_channel_is_the_weighted_moved_mask():
-  _, setup, _ = _setup(False, mask_channel=0.5)
-  x, keep = _scans_and_keep()
-  keys = jax.random.split(jax.random.key(1), len(x))
-  v = jax.jit(lambda *a: trainer.d_view(setup, *a))(keys, x, keep)
-  assert v.shape == x.shape + (2,)
-  y, k = augment.per_example_with_mask(keys, x, keep, setup.policy, setup.augment_style)
-  np.testing.assert_allclose(v[..., 0], y, rtol=0, atol=1e-6)  # jit vs eager rounding
-  np.testing.assert_array_equal(v[..., 1], 0.5 * k)
-
-
-def test_mask_channel_noise_and_dropout():
-  x, keep = _scans_and_keep(b=64)
-  keys = jax.random.split(jax.random.key(1), len(x))
-  _, hidden, _ = _setup(False, mask_channel=1.0, mask_dropout=1.0)
-  np.testing.assert_array_equal(trainer.d_view(hidden, keys, x, keep)[..., 1], 0.0)
-  _, half, _ = _setup(False, mask_channel=1.0, mask_dropout=0.5)
-  shown = np.asarray(trainer.d_view(half, keys, x, keep)[..., 1]).any(axis=(1, 2))
-  assert 0.25 < shown.mean() < 0.75
-  _, noisy, _ = _setup(False, mask_channel=1.0, mask_noise=0.1)
-  _, clean, _ = _setup(False, mask_channel=1.0)
-  diff = trainer.d_view(noisy, keys, x, keep)[..., 1] - trainer.d_view(clean, keys, x, keep)[..., 1]
-  assert float(jnp.std(diff)) == pytest.approx(0.1, rel=0.05)
-  assert abs(float(jnp.mean(diff))) < 0.01
-
-
 @pytest.mark.parametrize('rate_by', ['image', 'ring'])
 def test_rate_penalty_against_numpy(rate_by):
-  _, setup, _ = _setup(False, rate_weight=1.0, rate_by=rate_by)
   _, keep = _scans_and_keep(seed=1, rate=0.5)
   _, real = _scans_and_keep(seed=2, rate=0.2)
   k, r = np.asarray(keep, np.float64), np.asarray(real, np.float64)
   axes = (0, 2) if rate_by == 'ring' else (0, 1, 2)
   want = np.mean(np.square(k.mean(axis=axes) - r.mean(axis=axes)))
-  got = trainer.rate_penalty(setup.drops, keep, real)
+  got = drops.rate_penalty(keep, real, rate_by)
   assert float(got) == pytest.approx(want, rel=1e-5)
   # Only the generated mask is pushed: towards the real rate.
-  g = jax.grad(lambda m: trainer.rate_penalty(setup.drops, m, real))(keep)
+  g = jax.grad(lambda m: drops.rate_penalty(m, real, rate_by))(keep)
   assert float(g.sum()) < 0  # generated keeps less than real: raising it pays.
-  assert float(jnp.abs(jax.grad(lambda r: trainer.rate_penalty(
-      setup.drops, keep, r))(real)).max()) == 0.0
+  assert float(jnp.abs(jax.grad(lambda r: drops.rate_penalty(
+      keep, r, rate_by))(real)).max()) == 0.0
 
 
 def _neighbour_bins_loop(x, keep, sensor, edges):
@@ -130,14 +71,14 @@ def test_neighbour_depth_bin_against_loops():
   keep[0, :3] = False  # a pixel whose neighbours all dropped: bin 0
   x = np.where(keep, np.asarray(codec.encode(depth, sensor)), ALPHA).astype(np.float32)
   edges = (5.0, 20.0, 40.0)
-  got = np.asarray(trainer.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(keep), sensor, edges))
+  got = np.asarray(drops.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(keep), sensor, edges))
   want = _neighbour_bins_loop(x, keep, sensor, edges)
   np.testing.assert_array_equal(got, want)
   assert (want == 0).any() and len(np.unique(want)) == len(edges) + 2
   # The pixel itself never counts: flipping it leaves its own bin unchanged.
   flipped = keep.copy()
   flipped[1, 3, 5] = ~flipped[1, 3, 5]
-  again = trainer.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(flipped), sensor, edges)
+  again = drops.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(flipped), sensor, edges)
   assert int(again[1, 3, 5]) == int(got[1, 3, 5])
 
 
@@ -153,11 +94,11 @@ def test_cell_rate_penalty_against_numpy():
     if f.any() and r.any():
       total += f.sum() * (keep[f].mean() - real[r].mean()) ** 2
       weight += f.sum()
-  got = trainer.cell_rate_penalty(jnp.asarray(keep), jnp.asarray(real),
+  got = drops.cell_rate_penalty(jnp.asarray(keep), jnp.asarray(real),
                                   jnp.asarray(cells), jnp.asarray(real_cells), num)
   assert float(got) == pytest.approx(total / weight, rel=1e-5)
   # Each generated pixel is pushed towards its own cell's real rate.
-  g = np.asarray(jax.grad(trainer.cell_rate_penalty)(
+  g = np.asarray(jax.grad(drops.cell_rate_penalty)(
       jnp.asarray(keep), jnp.asarray(real), jnp.asarray(cells), jnp.asarray(real_cells), num))
   for c in range(5):
     f = cells == c
@@ -168,39 +109,9 @@ def test_cell_rate_penalty_against_numpy():
   c0 = cells == 0
   gap0 = keep[c0].mean() - real[real_cells == 0].mean()
   np.testing.assert_allclose(g[c0], 2 * gap0 / weight, rtol=1e-4)
-  g_real = jax.grad(trainer.cell_rate_penalty, argnums=1)(
+  g_real = jax.grad(drops.cell_rate_penalty, argnums=1)(
       jnp.asarray(keep), jnp.asarray(real), jnp.asarray(cells), jnp.asarray(real_cells), num)
   assert float(jnp.abs(g_real).max()) == 0.0
-
-
-def test_cell_rate_penalty_shrinks_sparse_cells_to_their_group_rate():
-  rng = np.random.default_rng(7)
-  keep = rng.uniform(size=(3, 4, 10)).astype(np.float32)
-  real = (rng.uniform(size=keep.shape) > 0.4).astype(np.float32)
-  groups, per = 4, 3  # 4 groups (rings) of 3 cells; cell = row * 3 + bin
-  row = np.arange(4)[None, :, None]
-  cells = row * per + rng.integers(0, per, keep.shape)
-  real_cells = row * per + rng.choice([0, 1], keep.shape, p=[0.95, 0.05])
-  real_cells[:, 0] = 0 + rng.integers(0, 2, real_cells[:, 0].shape)  # ring 0: no bin 2
-  k, num = 10.0, groups * per
-  total, weight = 0.0, 0.0
-  for c in range(num):
-    f, r, g = cells == c, real_cells == c, (real_cells // per) == c // per
-    target = (real[r].sum() + k * real[g].mean()) / (r.sum() + k)
-    total += f.sum() * (keep[f].mean() - target) ** 2 if f.any() else 0.0
-    weight += f.sum()
-  args = [jnp.asarray(a) for a in (keep, real, cells, real_cells)]
-  got = trainer.cell_rate_penalty(*args, num, shrink=k, groups=groups)
-  assert float(got) == pytest.approx(total / weight, rel=1e-5)
-  # A cell the reals miss (ring 0, bin 2) now counts, pulled to ring 0's rate.
-  g = np.asarray(jax.grad(lambda m: trainer.cell_rate_penalty(
-      m, *args[1:], num, shrink=k, groups=groups))(args[0]))
-  empty = cells == 2
-  assert empty.any() and np.all(
-      np.sign(g[empty]) == np.sign(keep[empty].mean() - real[:, 0].mean()))
-  # Without shrinking it would weigh 0.
-  g0 = jax.grad(lambda m: trainer.cell_rate_penalty(m, *args[1:], num))(args[0])
-  np.testing.assert_array_equal(np.asarray(g0)[empty], 0.0)
 
 
 def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
@@ -216,28 +127,28 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
   fake_keep = jnp.asarray(np.broadcast_to((r + c) % 4 != 0, x.shape), jnp.float32)
   real = (jnp.asarray(np.where(real_keep > 0, x, ALPHA)), jnp.asarray(real_keep))
   fake_scan = jnp.where(fake_keep > 0, jnp.asarray(x), ALPHA)
-  penalty = lambda k: trainer.ring_depth_rate_penalty(sensor, (fake_scan, k), real)
+  penalty = lambda k: drops.ring_depth_rate_penalty(sensor, (fake_scan, k), real)
   assert float(penalty(fake_keep)) > 0
   g = np.asarray(jax.grad(penalty)(fake_keep))
   # Away from the seams (the window reaches 2 columns): near pixels are
   # pushed to keep (the penalty falls as they rise), far ones to drop.
   assert (g[..., 2:14] < 0).all() and (g[..., 18:30] > 0).all()
-  ring = trainer.rate_penalty(trainer.DropOptions(rate_by='ring'), fake_keep, real[1])
+  ring = drops.rate_penalty(fake_keep, real[1], 'ring')
   assert float(ring) == 0.0
   # rate_skip_far: the cells beyond 40 m (here the far half, at 50 m) weigh
   # 0, so the far pixels get no gradient; the near ones are still pulled up.
-  skip = lambda k: trainer.ring_depth_rate_penalty(sensor, (fake_scan, k), real, skip_far=True)
+  skip = lambda k: drops.ring_depth_rate_penalty(sensor, (fake_scan, k), real, skip_far=True)
   g_skip = np.asarray(jax.grad(skip)(fake_keep))
   assert (g_skip[..., 18:30] == 0).all() and (g_skip[..., 2:14] < 0).all()
   # Drops at another drop constant (config drop_const) change nothing.
   at = lambda x, k, c: jnp.where(k > 0, x, c)
-  moved = trainer.ring_depth_rate_penalty(
+  moved = drops.ring_depth_rate_penalty(
       sensor, (at(fake_scan, fake_keep, -2.0), fake_keep), (at(real[0], real[1], -2.0), real[1]))
   assert float(moved) == float(penalty(fake_keep))
   # A scene at one depth falls in the bin that depth names.
   for d, want in ((3.0, 1), (12.0, 3), (50.0, 7), (100.0, 8)):
     x1 = jnp.full((1, 4, 32), float(codec.encode(np.float32(d), sensor)))
-    bins = trainer.neighbour_depth_bin(x1, jnp.ones_like(x1), sensor)
+    bins = drops.neighbour_depth_bin(x1, jnp.ones_like(x1), sensor)
     assert (np.asarray(bins) == want).all(), (d, np.unique(bins))
 
 
@@ -253,7 +164,7 @@ def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
 
   def rate(p, detached):
     out = gen.apply(p, z, detached_head=True)[1 if detached else 0]
-    return trainer.rate_penalty(setup.drops, variant.measurability(variant.logit(out)), real)
+    return drops.rate_penalty(variant.measurability(variant.logit(out)), real, 'ring')
   for detached in (True, False):
     g = jax.grad(rate)(state.g_params, detached)['params']
     head = {'head', 'head_bias', 'ring_bias'}
@@ -316,9 +227,9 @@ def test_ring_keep_rate_counts_returns_per_row(tiny):
   depth[rng.uniform(size=depth.shape) < np.linspace(0.05, 0.9, tiny.shape[0])[:, None]] = 0
   depth[0, 3, :5] = tiny.max_depth + 10  # out of range: not a return.
   want = ((depth[:30] > 0) & (depth[:30] <= tiny.max_depth)).mean(axis=(0, 2))
-  np.testing.assert_allclose(trainer.ring_keep_rate(depth, tiny, num=30), want)
+  np.testing.assert_allclose(drops.ring_keep_rate(depth, tiny, num=30), want)
   with pytest.raises(ValueError, match='no scans'):
-    trainer.ring_keep_rate(depth[:0], tiny)
+    drops.ring_keep_rate(depth[:0], tiny)
 
 
 def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
@@ -328,7 +239,7 @@ def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
   _, setup, state = _setup(ring_keep=keep, ring_bias=True, mask_bias=1.0)
   p = state.g_params['params']
   start = np.asarray(p['ring_bias']) + float(p['head_bias'][1])
-  clipped = np.clip(keep, trainer.RING_KEEP_CLIP, 1 - trainer.RING_KEEP_CLIP)
+  clipped = np.clip(keep, drops.RING_KEEP_CLIP, 1 - drops.RING_KEEP_CLIP)
   np.testing.assert_allclose(start, np.log(clipped / (1 - clipped)), rtol=1e-5, atol=1e-5)
   # The generated keep rate of each ring follows (the head's own random
   # output at init moves it by a little).
@@ -341,63 +252,14 @@ def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
   # Without the option G has no such variables, as the authors' G.
   assert 'ring_bias' not in _setup()[2].g_params['params']
   with pytest.raises(ValueError, match='16 rings'):
-    trainer.set_ring_bias(state.g_params, keep[:4])
+    drops.set_ring_bias(state.g_params, keep[:4])
 
 
-@pytest.mark.parametrize('model', ['dusty1', 'dusty2'])
-def test_range_slope_adds_a_slope_per_ring_in_the_pixels_own_depth(model):
-  """range_slope: the pixel logit (channel 1) gains slope[row] * (x_tilde +
-  1), x_tilde the pixel's own complete inverse depth; every other channel
-  and x_tilde itself are unchanged, the slopes start at 0 (so a new run
-  starts as without them), and no gradient reaches x_tilde through them."""
-  _, setup, state = _setup(model=model, range_slope=True, ring_bias=True)
-  _, plain, _ = _setup(model=model, ring_bias=True, init=False)
-  p = state.g_params
-  assert np.asarray(p['params']['range_slope']).tolist() == [0.0] * 16
-  z = jax.random.normal(jax.random.key(2), (3, setup.settings.latent_dim))
-  without = {'params': {k: v for k, v in p['params'].items() if k != 'range_slope'}}
-  np.testing.assert_array_equal(np.asarray(setup.generator.apply(p, z)),
-                                np.asarray(plain.generator.apply(without, z)))
-  slope = jnp.linspace(-1.0, 2.0, 16)
-  q = {'params': {**p['params'], 'range_slope': slope}}
-  base, got = np.asarray(plain.generator.apply(without, z)), np.asarray(setup.generator.apply(q, z))
-  want = base.copy()
-  want[..., 1] += np.asarray(slope)[:, None] * (np.tanh(base[..., 0]) + 1)
-  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
-  # The slope's gradient is the row's sum of (x_tilde + 1); the depth
-  # channel gets none of the logit's gradient through it.
-  gs = jax.grad(lambda s: setup.generator.apply(
-      {'params': {**p['params'], 'range_slope': s}}, z)[..., 1].sum())(slope)
-  np.testing.assert_allclose(np.asarray(gs), (np.tanh(base[..., 0]) + 1).sum(axis=(0, 2)),
-                             rtol=1e-4)
-  dlogit = lambda params: jax.grad(lambda b: setup.generator.apply(
-      {'params': {**params, 'head_bias': b}}, z)[..., 1].sum())(params['head_bias'])
-  np.testing.assert_array_equal(np.asarray(dlogit(q['params']))[0], 0.0)
-  # It changes the networks' arrays, so a run cannot resume across it.
-  a, b = tiny_config(), tiny_config()
-  b.drops.range_slope = True
-  assert 'drops' in configs.architecture_diff(a, b)
-
-
-def test_mask_lr_scales_only_the_measurability_head():
-  updates = {'params': {'head': {'kernel': jnp.ones((4, 4, 3, 2))},
-                        'head_bias': jnp.ones((2,)), 'up1_bias': jnp.ones((5,))}}
-  out = trainer.scale_mask_updates(updates, 0.1)
-  np.testing.assert_allclose(out['params']['head']['kernel'][..., 0], 1.0)
-  np.testing.assert_allclose(out['params']['head']['kernel'][..., 1], 0.1)
-  np.testing.assert_allclose(out['params']['head_bias'], [1.0, 0.1])
-  np.testing.assert_allclose(out['params']['up1_bias'], 1.0)
-
-
-def test_a_step_with_every_option_runs_and_sees_the_mask():
-  # rate_by='ring_depth' (its cells nest in the rings); 'image' runs in
-  # test_mask_lr_zero_freezes_the_measurability_head.
-  c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_channel=1.0, mask_noise=0.1,
-                           mask_dropout=0.5, keep_drops=True, mask_bias=1.4, mask_lr=0.5,
-                           rate_weight=1e4, rate_by='ring_depth', rate_shrink=5.0,
-                           rate_head_only=True, ring_bias=True)
-  # D's first kernel sees 2 channels, each blurred two ways.
-  assert state.d_params['params']['down0']['kernel'].shape[2] == 4
+def test_a_step_with_the_rate_options_moves_each_ring_to_its_rate():
+  # rate_by='ring_depth' (its cells nest in the rings); 'ring' runs in
+  # test_far_weight_drops_the_far_pixels.
+  c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_bias=1.4, rate_weight=1e4,
+                           rate_by='ring_depth', rate_head_only=True, ring_bias=True)
   mesh = parallel.data_mesh(jax.devices()[:1])
   step = parallel.data_parallel(trainer.step_fn(setup), mesh)
   state = parallel.replicate(state, mesh)
@@ -417,34 +279,21 @@ def test_a_step_with_every_option_runs_and_sees_the_mask():
   assert (moved[:8] > 0).all() and (moved[8:] < 0).all()
 
 
-def test_mask_lr_zero_freezes_the_measurability_head():
-  c, setup, state = _setup(mask_lr=1e-12, rate_weight=1.0)
-  mesh = parallel.data_mesh(jax.devices()[:1])
-  step = parallel.data_parallel(trainer.step_fn(setup), mesh)
-  before = np.asarray(state.g_params['params']['head']['kernel'])
-  state, _ = step(parallel.replicate(state, mesh), parallel.shard_batch(
-      np.asarray(_scans_and_keep(b=c.batch_size)[0]), mesh), jax.random.key(1))
-  after = np.asarray(state.g_params['params']['head']['kernel'])
-  np.testing.assert_allclose(after[..., 1], before[..., 1], atol=1e-10)
-  assert np.abs(after[..., 0] - before[..., 0]).max() > 1e-4
-
-
-@pytest.mark.parametrize('field,value', [('mask_dropout', 1.5), ('mask_noise', -1.0),
-                                         ('mask_lr', 0.0), ('rate_by', 'pixel'),
-                                         ('rate_shrink', -1.0), ('rate_shrink', 5.0),
-                                         ('rate_head_only', True), ('depth_weight', -1.0),
-                                         ('dip_weight', -1.0), ('peak_weight', -1.0),
-                                         ('far_weight', -1.0), ('rate_skip_far', True)])
+@pytest.mark.parametrize('field,value', [('rate_weight', -1.0), ('rate_by', 'pixel'),
+                                         ('rate_head_only', True), ('dip_weight', -1.0),
+                                         ('peak_weight', -1.0), ('far_weight', -1.0),
+                                         ('rate_skip_far', True)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
-  c.drops[field] = value  # rate_shrink with rate_by='image', rate_head_only
+  c.drops[field] = value  # rate_skip_far with rate_by='image', rate_head_only
                           # without a rate term
   with pytest.raises(configs.ConfigError, match=f'drops.{field}'):
     configs.validate(c)
 
 
 @pytest.mark.parametrize('field,value', [('rate_weight', 1.0), ('ring_bias', True),
-                                         ('far_weight', 1.0), ('range_slope', True)])
+                                         ('far_weight', 1.0), ('mask_detached', True),
+                                         ('mask_bias', 1.0)])
 def test_baseline_refuses_mask_options(field, value):
   c = tiny_config(model='baseline')
   c.drops[field] = value
@@ -452,13 +301,56 @@ def test_baseline_refuses_mask_options(field, value):
     configs.validate(c)
 
 
-def test_only_the_mask_channel_and_ring_bias_change_the_architecture():
+@pytest.mark.parametrize('name, model, preset', [('sim-dusty1', 'dusty1', 'far'),
+                                                 ('sim-dusty2', 'dusty2', 'dips')])
+def test_the_presets_are_what_the_shipped_models_trained_with(name, model, preset):
+  """Each shipped model records its drops options (generator.export's
+  ``training``); read as an old config (configs.upgrade: the removed
+  options, off there, leave), they are its preset's."""
+  trained = pretrained.describe(name)['training']['drops']
+  old = configs.study(model).to_dict()
+  old['drops'] = trained
+  assert configs.upgrade(old).drops.to_dict() == configs.study(model, preset).drops.to_dict()
+  assert set(trained) >= set(drops.PRESETS[preset])
+
+
+def test_a_removed_option_loads_where_it_was_off_and_is_refused_where_on(tmp_path):
+  c = tiny_config()
+  configs.save(str(tmp_path), c)
+  path = tmp_path / configs.FILE
+  saved = json.loads(path.read_text())
+  saved['drops'].update(configs.REMOVED_DROPS)  # a run from f597033, all off
+  path.write_text(json.dumps(saved))
+  loaded = configs.load(str(tmp_path))
+  configs.validate(loaded)
+  assert loaded.drops.to_dict() == c.drops.to_dict()
+  for field, value in (('mask_channel', 1.0), ('keep_drops', True), ('mask_lr', 0.1),
+                       ('range_slope', True)):
+    path.write_text(json.dumps(dict(saved, drops=dict(saved['drops'], **{field: value}))))
+    with pytest.raises(configs.ConfigError, match=(
+        rf'^config field drops\.{field}={value!r}: this option was removed; '
+        r'commit f597033 is the last that has it$')):
+      configs.load(str(tmp_path))
+
+
+def test_a_generator_description_with_range_slope_off_still_loads(tiny, tmp_path):
+  settings = configs.model_settings(tiny_config())
+  generator.save_spec(str(tmp_path), tiny, settings, tiny.nominal_angles())
+  path = tmp_path / generator.SPEC_FILE
+  d = json.loads(path.read_text())
+  d['settings']['range_slope'] = False  # as generator.json files from f597033 have
+  path.write_text(json.dumps(d))
+  assert generator.read_spec(str(tmp_path))[1] == settings
+  d['settings']['range_slope'] = True
+  path.write_text(json.dumps(d))
+  with pytest.raises(configs.ConfigError, match=r'settings\.range_slope=True: .*removed'):
+    generator.read_spec(str(tmp_path))
+
+
+def test_only_the_ring_bias_changes_the_architecture():
   a, b = tiny_config(), tiny_config()
-  b.drops.rate_weight = 5.0
+  b.drops.update(drops.FAR, ring_bias=False)
   assert configs.architecture_diff(a, b) == {}
-  b.drops.mask_channel = 1.0
-  assert 'drops' in configs.architecture_diff(a, b)
-  b = tiny_config()
   b.drops.ring_bias = True
   assert 'drops' in configs.architecture_diff(a, b)
   old = tiny_config()
@@ -466,43 +358,15 @@ def test_only_the_mask_channel_and_ring_bias_change_the_architecture():
   assert configs.architecture_diff(old, a) == {}
 
 
-def test_ring_depth_gap_against_numpy():
-  x, keep = _scans_and_keep(seed=3, rate=0.4)
-  real, real_keep = _scans_and_keep(seed=4, rate=0.2)
-  x = np.asarray(x).copy()
-  x[:, 0] = -2.0     # a row the generator drops entirely: no gap there
-  x[:, 1, :5] = -1.0  # drops at another drop constant are drops
-  got = np.asarray(trainer.ring_depth_gap(jnp.asarray(x), real))
-  want = []
-  for r in range(x.shape[1]):
-    f, q = x[:, r].astype(np.float64), np.asarray(real)[:, r].astype(np.float64)
-    kept_f, kept_q = f[f > ALPHA], q[q > ALPHA]
-    want.append(kept_f.mean() - kept_q.mean() if len(kept_f) and len(kept_q) else 0.0)
-  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-  assert got[0] == 0.0
-  penalty = trainer.depth_penalty(jnp.asarray(x), real)
-  assert float(penalty) == pytest.approx(np.mean(np.square(want)), rel=1e-5)
-  # The gradient reaches the generated returns only, each by its row's gap.
-  g = np.asarray(jax.grad(trainer.depth_penalty)(jnp.asarray(x), real))
-  n = (x > ALPHA).sum(axis=(0, 2))
-  want_g = 2 * np.asarray(want) / np.maximum(n, 1) / x.shape[1]
-  np.testing.assert_allclose(g, np.where(x > ALPHA, want_g[None, :, None], 0.0),
-                             rtol=1e-4, atol=1e-9)
-  assert float(jnp.abs(jax.grad(lambda q: trainer.depth_penalty(
-      jnp.asarray(x), q))(real)).max()) == 0.0
-
-
-@pytest.mark.parametrize('term', ['depth_weight', 'dip_weight', 'peak_weight'])
+@pytest.mark.parametrize('term', ['dip_weight', 'peak_weight'])
 def test_the_depth_terms_move_the_generated_returns(term):
-  """One G step with the term weighted to dominate brings the generated
-  rows' mean returned value towards the real scans' (near surfaces, x =
-  0.8; depth_weight), or fills the dips among the returns (dip_weight), or
-  lowers their peaks (peak_weight; the flat real scans have none), where
-  the same step without it does not."""
+  """One G step with the term weighted to dominate fills the dips among the
+  generated returns (dip_weight), or lowers their peaks (peak_weight; the
+  flat real scans, x = 0.8, have none), where the same step without it
+  does not."""
   measure = {
-      'depth_weight': lambda scan, real: jnp.mean(jnp.abs(trainer.ring_depth_gap(scan, real))),
-      'dip_weight': lambda scan, real: trainer.dip_penalty(scan),
-      'peak_weight': lambda scan, real: trainer.peak_penalty(scan, real)}[term]
+      'dip_weight': lambda scan, real: drops.dip_penalty(scan),
+      'peak_weight': lambda scan, real: drops.peak_penalty(scan, real)}[term]
   gaps = {}
   for weight in (0.0, 1e3):
     c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
@@ -520,8 +384,6 @@ def test_the_depth_terms_move_the_generated_returns(term):
     state, m = step(parallel.replicate(state, mesh), parallel.shard_batch(real, mesh),
                     jax.random.key(1))
     m = parallel.to_host(m)
-    if term == 'depth_weight':
-      assert float(m['depth_gap']) == pytest.approx(before, rel=0.2)  # logged, same scale
     gaps[weight] = gap(parallel.to_host(state.g_params)) - before
   # Each falls in one step by more than 1% of where it started, and by that
   # much more than without the term.
@@ -535,23 +397,23 @@ def test_ring_outliers_against_loops(kind):
   x = rng.uniform(-0.9, 1, (3, 5, 12)).astype(np.float32)
   x[rng.uniform(size=x.shape) < 0.2] = ALPHA
   x[0, 0, 0] = -2.0  # a drop at another drop constant is a drop too
-  depth, counted = (np.asarray(a) for a in getattr(trainer, kind)(jnp.asarray(x)))
+  depth, counted = (np.asarray(a) for a in getattr(drops, kind)(jnp.asarray(x)))
   want_d, want_c = np.zeros(x.shape), np.zeros(x.shape, bool)
   for n, r, c in np.ndindex(*x.shape):
     trio = [x[n, r, (c + k) % 12] for k in (-1, 0, 1)]  # the ring wraps around
     if min(trio) > ALPHA:
       want_c[n, r, c] = True
       bound = max(trio[0], trio[2]) if sign > 0 else min(trio[0], trio[2])
-      want_d[n, r, c] = max(0.0, sign * (trio[1] - bound) - trainer.DIP)
+      want_d[n, r, c] = max(0.0, sign * (trio[1] - bound) - drops.DIP)
   np.testing.assert_array_equal(counted, want_c)
   np.testing.assert_allclose(depth, want_d, rtol=0, atol=1e-6)
   assert 0 < (want_d > 0).sum() < want_c.sum()
   if kind == 'dips':
-    penalty = trainer.dip_penalty
-    assert float(trainer._dip_share(jnp.asarray(x))) == pytest.approx(
+    penalty = drops.dip_penalty
+    assert float(drops.outlier_share(drops.dips, jnp.asarray(x))) == pytest.approx(
         (want_d > 0).sum() / want_c.sum(), rel=1e-6)
   else:  # against real scans without peaks: their mean height
-    penalty = lambda q: trainer.peak_penalty(q, jnp.zeros_like(q))
+    penalty = lambda q: drops.peak_penalty(q, jnp.zeros_like(q))
   assert float(penalty(jnp.asarray(x))) == pytest.approx(want_d.sum() / want_c.sum(), rel=1e-5)
   # The gradient moves each outlier towards its neighbours and leaves them.
   g = np.asarray(jax.grad(penalty)(jnp.asarray(x)))
@@ -570,15 +432,15 @@ def test_peak_penalty_pays_for_the_excess_only():
   flat = np.full((2, 4, 16), 0.3, np.float32)
   real = flat.copy()
   real[0, 1, 3] = real[1, 2, 9] = 0.6  # two poles: height 0.3 - DIP each
-  real_mean = 2 * (0.3 - trainer.DIP) / real.size
+  real_mean = 2 * (0.3 - drops.DIP) / real.size
   fake = flat.copy()
   fake[0, 0, ::4] = 0.5  # a lattice of four peaks, 0.2 - DIP each
-  fake_mean = 4 * (0.2 - trainer.DIP) / fake.size
+  fake_mean = 4 * (0.2 - drops.DIP) / fake.size
   assert fake_mean > real_mean
-  got = trainer.peak_penalty(jnp.asarray(fake), jnp.asarray(real))
+  got = drops.peak_penalty(jnp.asarray(fake), jnp.asarray(real))
   assert float(got) == pytest.approx(fake_mean - real_mean, rel=1e-5)
-  assert float(trainer.peak_penalty(jnp.asarray(real), jnp.asarray(fake))) == 0.0
-  g_real = jax.grad(lambda q: trainer.peak_penalty(jnp.asarray(fake), q))(jnp.asarray(real))
+  assert float(drops.peak_penalty(jnp.asarray(real), jnp.asarray(fake))) == 0.0
+  g_real = jax.grad(lambda q: drops.peak_penalty(jnp.asarray(fake), q))(jnp.asarray(real))
   assert float(jnp.abs(g_real).max()) == 0.0
 
 
@@ -588,7 +450,7 @@ def test_far_penalty_against_numpy():
   averaged over rows; its gradient reaches the keep values of far pixels
   only, each by its row's gap, and nothing reaches x_tilde."""
   sensor = tiny_sensor(16, 64)
-  code = float(codec.encode(np.float32(trainer.FAR_M), sensor))
+  code = float(codec.encode(np.float32(drops.FAR_M), sensor))
   rng = np.random.default_rng(5)
   inv = rng.uniform(-1.0, 0.0, (4, 16, 64)).astype(np.float32)  # about half beyond
   keep = rng.uniform(size=inv.shape).astype(np.float32)         # expected keep values
@@ -598,7 +460,7 @@ def test_far_penalty_against_numpy():
   real_far = (real > ALPHA) & (real <= code)
   gap = (keep * far).mean(axis=(0, 2)) - real_far.mean(axis=(0, 2))
   assert 0 < far.mean() < 1 and 0 < real_far.mean() < 1
-  f = lambda k, x: trainer.far_penalty(sensor, k, x, jnp.asarray(real))
+  f = lambda k, x: drops.far_penalty(sensor, k, x, jnp.asarray(real))
   assert float(f(jnp.asarray(keep), jnp.asarray(inv))) == pytest.approx(
       np.mean(gap ** 2), rel=1e-5)
   gk, gx = jax.grad(f, argnums=(0, 1))(jnp.asarray(keep), jnp.asarray(inv))
@@ -606,7 +468,7 @@ def test_far_penalty_against_numpy():
   np.testing.assert_allclose(np.asarray(gk), want, rtol=1e-4, atol=1e-10)
   assert float(jnp.abs(gx).max()) == 0.0
   # far_share, the logged metric: the share of the pixels that are far returns.
-  assert float(trainer.far_share(jnp.asarray(real), sensor)) == pytest.approx(real_far.mean())
+  assert float(drops.far_share(jnp.asarray(real), sensor)) == pytest.approx(real_far.mean())
 
 
 def test_far_weight_drops_the_far_pixels(monkeypatch):
@@ -615,7 +477,7 @@ def test_far_weight_drops_the_far_pixels(monkeypatch):
   some; judged before the step) towards the real scans' share of far
   returns (none: they are all at 0.8) by more than the same step without
   it, where the ring rate term pulls towards the real keep rate, 1."""
-  monkeypatch.setattr(trainer, 'FAR_M', 2.0)
+  monkeypatch.setattr(drops, 'FAR_M', 2.0)
   shares = {}
   for weight in (0.0, 1e3):
     c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
@@ -626,7 +488,7 @@ def test_far_weight_drops_the_far_pixels(monkeypatch):
     keys = jax.random.split(jax.random.key(3), c.batch_size)
     real = np.full((c.batch_size, c.sensor.height, c.sensor.width), 0.8, np.float32)
     out = lambda p: trainer.fake_scans(setup, p, z, keys, detached_head=True)
-    far = trainer._far(out(state.g_params)['inv_depth'], setup.sensor)  # pixels far at the start
+    far = drops.is_far(out(state.g_params)['inv_depth'], setup.sensor)  # pixels far at the start
     kept_far = lambda p: float(jnp.sum(out(p)['head_keep'] * far) / jnp.sum(far))
     before = kept_far(state.g_params)
     state, _ = step(parallel.replicate(state, mesh), parallel.shard_batch(real, mesh),

@@ -59,7 +59,8 @@ GRAPH = _graph()
 
 def test_the_graph_is_read():
   assert GRAPH['dusty_jax.trainer'] >= {'dusty_jax.models', 'dusty_jax.losses',
-                                        'dusty_jax.augment', 'dusty_jax.checkpoint'}
+                                        'dusty_jax.augment', 'dusty_jax.checkpoint',
+                                        'dusty_jax.drops'}
   assert 'dusty_jax.tools' in GRAPH['dusty_jax.tools.invert']  # the package's helpers
   assert 'dusty_jax.generator' in GRAPH['dusty_jax.pretrained']
 
@@ -100,6 +101,10 @@ def _reach(name) -> set:
                              'dusty_jax.data.pipeline', 'dusty_jax.data.synthetic')),
     ('dusty_jax.sampling', ('dusty_jax.trainer', 'dusty_jax.data.pipeline')),
     ('dusty_jax.inversion', ('dusty_jax.trainer', 'dusty_jax.data.pipeline')),
+    # The point-drop terms are pure functions of arrays: configs reads their
+    # options, the trainer calls them; they know neither, nor the networks.
+    ('dusty_jax.drops', ('dusty_jax.trainer', 'dusty_jax.configs', 'dusty_jax.models',
+                         'dusty_jax.augment', 'dusty_jax.losses', 'dusty_jax.data')),
 ])
 def test_what_a_module_never_reaches(module, banned):
   bad = sorted(m for m in _reach(module) if m.startswith(banned))
@@ -110,7 +115,8 @@ def test_data_never_imports_the_model_and_metrics_never_training():
   model_side = ('dusty_jax.models', 'dusty_jax.trainer', 'dusty_jax.generator',
                 'dusty_jax.sampling', 'dusty_jax.inversion', 'dusty_jax.layers')
   training = ('dusty_jax.trainer', 'dusty_jax.train', 'dusty_jax.losses',
-              'dusty_jax.augment', 'dusty_jax.parallel', 'dusty_jax.checkpoint')
+              'dusty_jax.augment', 'dusty_jax.parallel', 'dusty_jax.checkpoint',
+              'dusty_jax.drops')
   for name, deps in GRAPH.items():
     if name.startswith('dusty_jax.data.'):
       assert not {d for d in deps if d.startswith(model_side)}, name

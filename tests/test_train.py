@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import codec, configs, parallel, trainer
+from dusty_jax import configs, drops, parallel, trainer
 from conftest import FAST_COMPILE
 from event_files import read_events, scalars
 from train_helpers import run_steps, tiny_config
@@ -51,13 +51,12 @@ def test_one_and_four_devices_agree(one_device_params):
 
 
 def test_rate_terms_are_the_global_batch_s_on_four_devices():
-  # The rate and depth terms' tallies are summed over the devices, so one
-  # and four devices train the same. Each device's share of the reals drops
-  # at its own rate, so per-device rates would differ from the batch's. Two
-  # steps.
+  # The drops terms' tallies are summed over the devices, so one and four
+  # devices train the same. Each device's share of the reals drops at its
+  # own rate, so per-device rates would differ from the batch's. Two steps,
+  # with sim-dusty1's options (the rate term weighted up).
   config = tiny_config()
-  config.drops.update(rate_weight=1e3, rate_by='ring_depth', rate_shrink=10.0,
-                      depth_weight=1e2)
+  config.drops.update(drops.FAR, rate_weight=1e3)
   configs.validate(config)
   rates = np.repeat([0.05, 0.3, 0.6, 0.9], config.batch_size // 4)
   one = run_steps(2, devices=jax.devices()[:1], config=config, drop_rates=rates)
@@ -68,33 +67,16 @@ def test_rate_terms_are_the_global_batch_s_on_four_devices():
 @pytest.mark.parametrize('rate_by', ['image', 'ring'])
 def test_rate_penalty_on_four_devices_is_the_global_batch_s(rate_by):
   from jax.sharding import PartitionSpec as P
-  drops = trainer.DropOptions(rate_weight=1.0, rate_by=rate_by)
   rng = np.random.default_rng(3)
   keep = rng.uniform(size=(8, 16, 64)).astype(np.float32)
   # Each device's pair of scans keeps at its own rate.
   real = (rng.uniform(size=keep.shape) < np.repeat([0.9, 0.6, 0.3, 0.1], 2)[:, None, None])
   real = real.astype(np.float32)
-  alone = trainer.rate_penalty(drops, keep, real)
-  sharded = jax.jit(jax.shard_map(lambda k, r: trainer.rate_penalty(drops, k, r, parallel.AXIS),
+  alone = drops.rate_penalty(keep, real, rate_by)
+  sharded = jax.jit(jax.shard_map(lambda k, r: drops.rate_penalty(k, r, rate_by, parallel.AXIS),
                                   mesh=parallel.data_mesh(jax.devices()),
                                   in_specs=(P(parallel.AXIS), P(parallel.AXIS)), out_specs=P()))
   np.testing.assert_allclose(sharded(keep, real), alone, rtol=1e-5)
-
-
-def test_depth_penalty_on_four_devices_is_the_global_batch_s():
-  from jax.sharding import PartitionSpec as P
-  rng = np.random.default_rng(4)
-  # Each device's pair of scans returns at its own rate and range.
-  scan = rng.uniform(-0.9, 1, (8, 16, 64)).astype(np.float32)
-  real = np.repeat([0.9, 0.5, 0.0, -0.5], 2)[:, None, None] + 0.05 * rng.normal(size=scan.shape)
-  real = np.where(rng.uniform(size=scan.shape) < np.repeat([0.9, 0.6, 0.3, 0.1], 2)[:, None, None],
-                  real, codec.ALPHA).astype(np.float32)
-  alone = trainer.depth_penalty(scan, real)
-  sharded = jax.jit(jax.shard_map(lambda x, r: trainer.depth_penalty(x, r, parallel.AXIS),
-                                  mesh=parallel.data_mesh(jax.devices()),
-                                  in_specs=(P(parallel.AXIS), P(parallel.AXIS)), out_specs=P()))
-  np.testing.assert_allclose(sharded(scan, real), alone, rtol=1e-5)
-  assert float(alone) > 1e-3
 
 
 @pytest.mark.parametrize('batch, cores, want', [

@@ -6,7 +6,7 @@ import numpy as np
 import optax
 import pytest
 
-from dusty_jax import losses, trainer
+from dusty_jax import augment, codec, drops, losses, trainer
 from dusty_jax.sensor import tiny_sensor
 from train_helpers import tiny_config
 
@@ -108,11 +108,10 @@ def test_g_step_through_the_vjp_equals_a_fresh_gradient():
 
   @jax.jit
   def step(gp, go, dp):
-    fake, vjp = jax.vjp(render, gp)
+    fake, vjp = jax.vjp(lambda p: trainer.Fake(scan=render(p)), gp)
     return trainer.g_step(setup, gp, go, dp, fake, vjp, aug_keys)
 
   g_params, g_opt, loss = step(state.g_params, state.g_opt, state.d_params)
-  from dusty_jax import augment
 
   def objective(p):
     x = augment.per_example(aug_keys, render(p), setup.policy, setup.augment_style)
@@ -144,3 +143,55 @@ def test_ema_update_and_decay():
     halflife = min(config.ema_halflife_kimg * 1000, (step + 1) * b * 0.05)
     assert float(trainer.ema_decay(setup, jnp.int32(step))) == pytest.approx(
         0.5 ** (b / halflife), rel=1e-5)
+
+
+def test_g_step_with_drops_terms_adds_them_to_the_gradient_not_the_loss():
+  """With sim-dusty1's options ('far'), G's update is Adam on the gradient
+  of the adversarial loss plus drops.add_penalties, taken through the
+  Fake's scan, mask, detached head and x_tilde; the reported loss is the
+  adversarial one alone."""
+  config = tiny_config()
+  config.drops.update(drops.FAR)
+  setup = trainer.make_setup(config, tiny_sensor(config.sensor.height, config.sensor.width))
+  state = trainer.init_state(setup, jax.random.key(0), np.linspace(0.5, 0.9, 16))
+  assert setup.drops.rate_head_only and setup.drops.far_weight > 0
+  z, mask_keys = _fakes(setup)
+  aug_keys = _keys(N, 3)
+  x = _batch(setup, 4)
+  x = jnp.where(jax.random.uniform(jax.random.key(7), x.shape) < 0.3, codec.ALPHA, x)
+  real = (x, (x > codec.ALPHA).astype(x.dtype))
+
+  def render(p):
+    out = trainer.fake_scans(setup, p, z, mask_keys, detached_head=True)
+    return trainer.Fake(scan=out['scan'], mask=out['mask'], head_keep=out['head_keep'],
+                        inv_depth=out['inv_depth'])
+
+  @jax.jit
+  def step(gp, go, dp):
+    fake, vjp = jax.vjp(render, gp)
+    return trainer.g_step(setup, gp, go, dp, fake, vjp, aug_keys, real=real)
+
+  g_params, g_opt, loss = step(state.g_params, state.g_opt, state.d_params)
+
+  def adversarial(p):
+    x = augment.per_example(aug_keys, render(p).scan, setup.policy, setup.augment_style)
+    return losses.g_loss(setup.discriminator.apply(state.d_params, x))
+
+  def objective(p):
+    f = render(p)
+    keep = f.head_keep
+    return (adversarial(p)
+            + 10.0 * drops.dip_penalty(f.scan) + 10.0 * drops.peak_penalty(f.scan, real[0])
+            + 100.0 * drops.far_penalty(setup.sensor, keep, f.inv_depth, real[0])
+            + 100.0 * drops.ring_depth_rate_penalty(setup.sensor, (f.scan, f.mask), real,
+                                                    keep=keep, skip_far=True))
+
+  grads = jax.jit(jax.grad(objective))(state.g_params)
+  want, _ = _adam(setup.g_tx, grads, state.g_opt, state.g_params)
+  np.testing.assert_allclose(loss, jax.jit(adversarial)(state.g_params), rtol=1e-6)
+  _close(g_params, want)
+  # The terms weigh: without them the update differs.
+  plain, _ = _adam(setup.g_tx, jax.jit(jax.grad(adversarial))(state.g_params), state.g_opt,
+                   state.g_params)
+  assert max(float(jnp.abs(a - b).max()) for a, b in
+             zip(jax.tree.leaves(plain), jax.tree.leaves(want))) > 1e-6

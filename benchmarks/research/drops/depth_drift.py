@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 import drops_screen
-from dusty_jax.trainer import DIP  # the dip_weight term's threshold
+from dusty_jax.drops import DIP  # the dip_weight term's threshold
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GROUND_RINGS = 8  # the bottom rings: near ground in every simulated scene

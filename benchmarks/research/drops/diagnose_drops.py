@@ -82,7 +82,7 @@ def can_d_see_drops(steps: int, batch: int = 16, seed: int = 0, only=None):
   import tqdm
   from dusty_jax import augment, configs, losses, sensor as sensor_lib, trainer
   from dusty_jax.data import pipeline
-  base = configs.study('dusty1', 'cpu')
+  base = configs.study('dusty1')
   sensor = sensor_lib.from_config(base.sensor)
   d = pipeline.dataset_dir(base, sensor, log=print)
   tr_obs, tr_fill = filled_scans(d, 'train', sensor, 1024)
@@ -91,7 +91,7 @@ def can_d_see_drops(steps: int, batch: int = 16, seed: int = 0, only=None):
   for name, over in SETTINGS.items():
     if only and name not in only:
       continue
-    c = configs.study('dusty1', 'cpu')
+    c = configs.study('dusty1')
     c.update(over)
     setup = trainer.make_setup(c, sensor)
     params = setup.discriminator.init(jax.random.key(seed), jnp.zeros((1,) + sensor.shape))

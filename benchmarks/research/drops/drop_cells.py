@@ -7,7 +7,7 @@ drop_oracles.py scores measurability through inversion of held-out scans,
 which mixes two things: the depth the search recovers and the head. This
 looks at the generator alone. It draws ``--num`` scans from each model and
 tabulates its mean measurability per (ring, depth bin) cell, the depth bins
-(trainer.RATE_DEPTH_EDGES) judged on the sample's own complete depth
+(drops.RATE_DEPTH_EDGES) judged on the sample's own complete depth
 x_tilde, over its surface pixels. Beside it, the same table of the training
 split's observed keep rate on the simulator's complete depth
 (drop_oracles.cell_rates). Printed per model:
@@ -44,7 +44,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'
 import common
 import dusty_jax
 from drop_oracles import cell_rates, cell_sums
-from dusty_jax import codec, configs, sampling, trainer
+from dusty_jax import codec, configs, drops, sampling
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import ground_truth
 from dusty_jax.sensor import get_sensor
@@ -137,7 +137,7 @@ def main(argv=None):
   sensor = get_sensor(config.sensor.preset)
   d = pipeline.dataset_dir(config, sensor, log=print)
   load = lambda kind='': np.asarray(arrays.load_split(d, 'train', sensor, kind), np.float64)
-  edges = np.asarray(trainer.RATE_DEPTH_EDGES)
+  edges = np.asarray(drops.RATE_DEPTH_EDGES)
   near_bins = int(np.searchsorted(edges, ground_truth.NEAR_M)) + 1
   obs, comp = load(), load('complete')
   real, real_n = cell_rates(obs, comp, sensor, edges)

@@ -15,7 +15,7 @@ scans of the study's data:
     scans, the same at every pixel of a ring: what a per-ring rate alone
     scores;
   * ``ring x depth rate``: each (ring, depth bin) cell's keep rate over the
-    training split, the bins of trainer.RATE_DEPTH_EDGES judged on the
+    training split, the bins of drops.RATE_DEPTH_EDGES judged on the
     complete depth (which a generator draws as x_tilde): what the drops
     variant's rate term asks for, and nothing within a cell.
 
@@ -47,7 +47,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..'))
 import common
 import dusty_jax
-from dusty_jax import codec, configs, evaluation, trainer
+from dusty_jax import codec, configs, drops, evaluation
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.metrics import ground_truth
 from dusty_jax.sensor import get_sensor
@@ -109,8 +109,8 @@ def main(argv=None):
     saved[name] = {k: np.concatenate([r[k] for r in res])
                    for k in ('inv_depth', 'measurability')}
   train_obs, train_comp = load('train'), load('train', 'complete')
-  edges = np.asarray(trainer.RATE_DEPTH_EDGES)
-  ring = trainer.ring_keep_rate(train_obs, sensor, num=len(train_obs))
+  edges = np.asarray(drops.RATE_DEPTH_EDGES)
+  ring = drops.ring_keep_rate(train_obs, sensor, num=len(train_obs))
   cells, _ = cell_rates(train_obs, train_comp, sensor, edges)
   rows = np.arange(obs.shape[1])[None, :, None]
   maps = {

@@ -32,8 +32,8 @@ KEEP_ALL_LOGIT = 50.0
 
 def keep_all(params):
   """``params`` with a measurability of 1 everywhere (x_tilde unchanged)."""
-  from dusty_jax import trainer
-  v = trainer.set_mask_bias(params.variables, KEEP_ALL_LOGIT)
+  from dusty_jax import drops
+  v = drops.set_mask_bias(params.variables, KEEP_ALL_LOGIT)
   if 'ring_bias' in v['params']:
     v['params']['ring_bias'] = v['params']['ring_bias'] * 0.0
   return params.replace(variables=v)

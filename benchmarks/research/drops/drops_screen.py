@@ -3,7 +3,7 @@
     python benchmarks/research/drops/drops_screen.py --workdir runs/screen [--steps 600]
         [--variants authors,rate,...] [--out benchmarks/research/drops/results]
 
-Each variant is the study's CPU-scale DUSty-I (experiments/study_dusty1.py)
+Each variant is the study's CPU-scale DUSty-I (experiments/study.py)
 with some of the ``drops`` options of dusty_jax/configs.py set (VARIANTS
 below), trained for ``--steps`` (resumable: a rerun continues, or only
 evaluates what is done). For each it reports, over training:
@@ -99,6 +99,7 @@ def config_of(variant: str, steps: int, every: int, data_dir: str = ''):
   options = dict(VARIANTS[variant])
   c = configs.study(options.pop('model', 'dusty1'))
   c.drops.update(options)
+  c = configs.upgrade(c)  # options removed since (f597033 has them) are refused
   c.data.dir = data_dir
   c.num_steps = steps
   c.log_every = 10
@@ -179,22 +180,22 @@ PRIOR_PSEUDO_COUNT = 5  # cells the training scans barely fill lean on their rin
 def ring_depth_prior(split, sensor, num: int) -> dict:
   """The same for a table: the training scans' keep rate per (ring, depth
   bin) cell, the cells as the ``ring_depth`` rate term forms them
-  (trainer.ring_depth_cells). The term's targets are these rates, taken
+  (drops.ring_depth_cells). The term's targets are these rates, taken
   from each training batch instead of the whole split."""
   import jax
-  from dusty_jax import codec, trainer
+  from dusty_jax import codec, drops
   from dusty_jax.metrics import ground_truth
-  cells_of = jax.jit(lambda x: trainer.ring_depth_cells(x, x > codec.ALPHA, sensor))
+  cells_of = jax.jit(lambda x: drops.ring_depth_cells(x, x > codec.ALPHA, sensor))
   def cells(depth):
     return np.concatenate([np.asarray(cells_of(codec.encode(d, sensor)))
                            for d in np.array_split(depth, max(1, len(depth) // 64))])
   train = np.asarray(split('train'))
   keep = np.asarray(codec.valid_depth(train, sensor), np.float64)
-  num_cells = train.shape[1] * trainer.RATE_DEPTH_BINS
+  num_cells = train.shape[1] * drops.RATE_DEPTH_BINS
   index = cells(train)
   kept = np.bincount(index.ravel(), keep.ravel(), minlength=num_cells)
   seen = np.bincount(index.ravel(), minlength=num_cells)
-  ring_rate = np.repeat(keep.mean(axis=(0, 2)), trainer.RATE_DEPTH_BINS)
+  ring_rate = np.repeat(keep.mean(axis=(0, 2)), drops.RATE_DEPTH_BINS)
   rate = (kept + PRIOR_PSEUDO_COUNT * ring_rate) / (seen + PRIOR_PSEUDO_COUNT)
   obs, comp, prob = (np.asarray(split('test', k)[:num]) for k in ('', 'complete', 'drop_prob'))
   out = ground_truth.measurability_scores(sensor, rate[cells(obs)], obs, comp, prob)

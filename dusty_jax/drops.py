@@ -1,0 +1,398 @@
+"""Point-drop mechanisms beyond the paper (config ``drops``).
+
+All are off by default, which trains as the authors do. The trainer calls
+this module through four hooks:
+  * :func:`init_biases`: where the measurability starts (``mask_bias``,
+    ``ring_bias``);
+  * :func:`add_penalties`: the terms added to G's loss;
+  * :attr:`DropOptions.g_needs_mask`: whether G's loss differentiates the
+    keep-mask itself (not only the scan);
+  * :func:`diagnostics`: the drop metrics a train step logs.
+The terms and setters are pure functions, each tested alone
+(tests/test_drops.py). With ``axis_name`` every tally is the global batch's
+(summed over the devices), so N devices compute what one does.
+
+``PRESETS`` names the options the shipped models trained with; the rest of
+the screened combinations are in benchmarks/research/drops/lineage.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from dusty_jax import codec
+from dusty_jax.sensor import SensorSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class DropOptions:
+  """The options of config ``drops`` (configs.drop_defaults is made of these
+  fields and their defaults, all off).
+
+  Attributes:
+    mask_bias: the measurability logit's initial bias (the authors' is 0:
+      half the pixels dropped at the start); logit(keep rate) starts there.
+    ring_bias: G's pixel measurability gets a learned logit offset per ring
+      (models.Generator.ring_bias), started at the training data's keep
+      rate of that ring (:func:`set_ring_bias`). It changes the networks,
+      so models.ModelSettings carries it too.
+    rate_weight: lambda: G's loss + lambda * the squared gap between the
+      generated and the real batch's keep rate (:func:`rate_term`) ...
+    rate_by: ... of the whole batch ('image'), of each ring ('ring',
+      averaged over rings), or of each (ring, neighbours' depth bin) cell
+      ('ring_depth', :func:`ring_depth_rate_penalty`): drops that depend on
+      the range within a ring, as a sensor's do.
+    rate_head_only: the rate and far terms are taken on the expected keep
+      (the measurability, not the sampled mask) of the head applied to the
+      trunk's features under stop_gradient, so they train the measurability
+      head and its biases and leave G's shared trunk to the GAN loss.
+    mask_detached: the measurability comes from the head on the trunk's
+      features under stop_gradient (the same values), so no gradient of the
+      mask (the GAN's straight-through one included) reaches the trunk: it
+      learns from x_tilde alone, the head's measurability part from the mask.
+    dip_weight: nu: G's loss + nu * the mean depth of the dips among the
+      generated returns (:func:`dip_penalty`): a checkerboard of far pixels
+      that looks like drops to D, which real surfaces hardly have.
+    peak_weight: rho: G's loss + rho * how far the mean height of the peaks
+      among the generated returns exceeds the real batch's
+      (:func:`peak_penalty`): real scans have peaks (poles, trunks); only
+      the excess, a lattice of near pixels, is paid for.
+    far_weight: phi: G's loss + phi * the mean over rings of the squared gap
+      between the share of generated pixels that are returns beyond FAR_M
+      and the real batch's (:func:`far_penalty`). Only the keep values are
+      differentiated, so the term moves drops, not surfaces.
+    rate_skip_far: the 'ring_depth' rate term leaves out its cells beyond
+      FAR_M, whose high real keep rate otherwise holds far regions kept
+      (far_weight's term sets those).
+  """
+  mask_bias: float = 0.0
+  ring_bias: bool = False
+  rate_weight: float = 0.0
+  rate_by: str = 'image'
+  rate_head_only: bool = False
+  mask_detached: bool = False
+  dip_weight: float = 0.0
+  peak_weight: float = 0.0
+  far_weight: float = 0.0
+  rate_skip_far: bool = False
+
+  @classmethod
+  def from_config(cls, drops) -> 'DropOptions':
+    """``drops``: a config's validated ``drops`` group (configs.validate)."""
+    return cls(**{f.name: type(f.default)(drops[f.name]) for f in dataclasses.fields(cls)})
+
+  @property
+  def g_needs_mask(self) -> bool:
+    """G's loss differentiates the keep-mask itself (not only the scan)."""
+    return self.rate_weight > 0 or self.far_weight > 0
+
+
+RATE_BY = ('image', 'ring', 'ring_depth')
+
+# The options the shipped models trained with (configs.study's presets):
+# 'authors' is the paper's training; 'dips' trained sim-dusty2, 'far'
+# sim-dusty1 (benchmarks/research/drops/lineage.py: how they were reached).
+DIPS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_by='ring_depth',
+            rate_head_only=True, mask_detached=True, dip_weight=10.0)
+FAR = dict(DIPS, peak_weight=10.0, far_weight=100.0, rate_skip_far=True)
+PRESETS = {'authors': {}, 'dips': DIPS, 'far': FAR}
+
+
+def _psum(x, axis_name):
+  return x if axis_name is None else lax.psum(x, axis_name)
+
+
+# ----------------------------------------------------------------------------
+# Where the measurability starts.
+# ----------------------------------------------------------------------------
+
+
+def set_mask_bias(g_params, bias: float):
+  """G's variables with the pixel measurability logit's bias set to ``bias``
+  (head channel 1; DUSty-II's image-level logit is left alone)."""
+  p = flax.core.unfreeze(g_params) if hasattr(g_params, 'unfreeze') else g_params
+  head_bias = p['params']['head_bias'].at[1].set(bias)
+  return {**p, 'params': {**p['params'], 'head_bias': head_bias}}
+
+
+RING_KEEP_CLIP = 0.01  # keep rates start within [0.01, 0.99]: finite logits.
+
+
+def ring_keep_rate(depth, sensor: SensorSpec, num: int = 1024) -> np.ndarray:
+  """(H,) the fraction of returned pixels per ring over the first ``num``
+  scans of ``depth`` (metric, 0 or out of range: dropped)."""
+  d = np.asarray(depth[:num], np.float32)
+  if not len(d):
+    raise ValueError('ring_keep_rate: no scans to count returns in')
+  return np.asarray(codec.valid_depth(d, sensor), np.float64).mean(axis=(0, 2))
+
+
+def set_ring_bias(g_params, ring_keep, mask_bias: float = 0.0):
+  """G's variables with the per-ring measurability offsets set so that,
+  with the global logit ``mask_bias``, ring r starts at logit(ring_keep[r])."""
+  p = flax.core.unfreeze(g_params) if hasattr(g_params, 'unfreeze') else g_params
+  keep = np.clip(np.asarray(ring_keep, np.float64), RING_KEEP_CLIP, 1 - RING_KEEP_CLIP)
+  rows = p['params']['ring_bias']
+  if keep.shape != rows.shape:
+    raise ValueError(f'ring_keep has shape {keep.shape}; the sensor has {rows.shape[0]} rings')
+  logit = np.log(keep) - np.log1p(-keep) - mask_bias
+  return {**p, 'params': {**p['params'], 'ring_bias': jnp.asarray(logit, rows.dtype)}}
+
+
+def init_biases(options: DropOptions, g_params, ring_keep=None):
+  """Fresh G variables with the measurability's starting biases: the global
+  ``mask_bias``, and with ``ring_bias`` one offset per ring from
+  ``ring_keep`` ((H,) the training data's keep rate per ring; without it the
+  offsets stay 0)."""
+  if options.mask_bias:
+    g_params = set_mask_bias(g_params, options.mask_bias)
+  if options.ring_bias and ring_keep is not None:
+    g_params = set_ring_bias(g_params, ring_keep, options.mask_bias)
+  return g_params
+
+
+# ----------------------------------------------------------------------------
+# The terms of G's loss.
+# ----------------------------------------------------------------------------
+
+
+def add_penalties(options: DropOptions, sensor: SensorSpec, loss, fake, real,
+                  axis_name=None):
+  """G's ``loss`` plus the terms of the options that are on, each times its
+  weight. ``fake``: the generated scans (trainer.Fake: ``scan``, and where
+  :attr:`DropOptions.g_needs_mask` their keep-mask ``mask``, with
+  ``rate_head_only`` the detached head's ``head_keep``, with ``far_weight``
+  the complete inverse depth ``inv_depth``); ``real``: the real batch's
+  (scans, keep-masks), or None where no option is on."""
+  if options.dip_weight > 0:
+    loss = loss + options.dip_weight * dip_penalty(fake.scan, axis_name)
+  if options.peak_weight > 0:
+    loss = loss + options.peak_weight * peak_penalty(fake.scan, real[0], axis_name)
+  keep = fake.head_keep if options.rate_head_only else fake.mask  # what the terms move
+  if options.far_weight > 0:
+    loss = loss + options.far_weight * far_penalty(sensor, keep, fake.inv_depth, real[0],
+                                                   axis_name)
+  if options.rate_weight > 0:
+    loss = loss + options.rate_weight * rate_term(options, sensor, keep, fake, real,
+                                                  axis_name)
+  return loss
+
+
+def rate_term(options: DropOptions, sensor: SensorSpec, keep, fake, real, axis_name=None):
+  """``rate_weight``'s term on the generated keep values ``keep``, by
+  ``rate_by``; ``fake.scan`` and ``fake.mask`` place the 'ring_depth' cells."""
+  if options.rate_by == 'ring_depth':
+    return ring_depth_rate_penalty(sensor, (fake.scan, fake.mask), real, axis_name, keep,
+                                   options.rate_skip_far)
+  return rate_penalty(keep, real[1], options.rate_by, axis_name)
+
+
+def rate_penalty(keep, real_keep, rate_by: str = 'image', axis_name=None):
+  """(generated keep rate - real keep rate)^2: of the whole batch, or per
+  row (averaged over rows) with ``rate_by='ring'``. Only ``keep`` is
+  differentiated."""
+  axes = (0, 2) if rate_by == 'ring' else (0, 1, 2)
+  n = _psum(np.prod([keep.shape[a] for a in axes]), axis_name)
+  rate = lambda k: _psum(k.sum(axis=axes), axis_name) / n
+  gap = rate(keep) - lax.stop_gradient(rate(real_keep))
+  return jnp.mean(jnp.square(gap))
+
+
+DIP = 0.05  # normalised inverse depth: how far behind both ring neighbours a dip lies
+
+
+def _ring_outliers(scan, sign, margin):
+  """(amounts, counted): per pixel of ``scan`` (B, H, W), how far it lies
+  beyond both ring neighbours by more than ``margin``, behind them (``sign``
+  -1: a dip) or in front of them (+1: a peak), 0 if not; and whether it and
+  both neighbours are returns (> ALPHA; the ring wraps around). The
+  neighbours and the masks are not differentiated."""
+  keep = lax.stop_gradient(scan > codec.ALPHA)
+  left, right = jnp.roll(scan, 1, -1), jnp.roll(scan, -1, -1)
+  bound = lax.stop_gradient(jnp.maximum(left, right) if sign > 0 else jnp.minimum(left, right))
+  counted = keep & jnp.roll(keep, 1, -1) & jnp.roll(keep, -1, -1)
+  return jnp.where(counted, jax.nn.relu(sign * (scan - bound) - margin), 0.0), counted
+
+
+def dips(scan, dip: float = DIP):
+  """(depths, counted): per pixel of ``scan`` (B, H, W), how far it lies
+  behind both ring neighbours beyond ``dip`` (0 if not), and whether it and
+  both neighbours are returns (> ALPHA; the ring wraps around). The
+  neighbours and the masks are not differentiated."""
+  return _ring_outliers(scan, -1, dip)
+
+
+def peaks(scan, peak: float = DIP):
+  """(heights, counted): as ``dips``, for pixels in front of both ring
+  neighbours beyond ``peak``: thin near objects (poles, trunks) in real
+  scans, a lattice of near pixels in generated ones."""
+  return _ring_outliers(scan, 1, peak)
+
+
+def outlier_share(outliers, scan, axis_name=None):
+  """The share of the counted pixels of ``scan`` that are ``outliers``
+  (:func:`dips` or :func:`peaks`)."""
+  amount, counted = outliers(scan)
+  return _psum((amount > 0).sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
+
+
+def _mean_amount(outliers, scan, axis_name=None):
+  amount, counted = outliers(scan)
+  return _psum(amount.sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
+
+
+def dip_penalty(scan, axis_name=None):
+  """``dip_weight``'s term: the mean dip depth over the counted pixels."""
+  return _mean_amount(dips, scan, axis_name)
+
+
+def peak_penalty(scan, real, axis_name=None):
+  """``peak_weight``'s term: how far the mean peak height over the counted
+  pixels of ``scan`` exceeds the real batch's (0 if it does not). Real
+  scans have peaks, their poles and trunks, so G keeps as many as they
+  have and pays for the excess only."""
+  excess = _mean_amount(peaks, scan, axis_name) - lax.stop_gradient(
+      _mean_amount(peaks, real, axis_name))
+  return jax.nn.relu(excess)
+
+
+FAR_M = 40.0  # metres: a return beyond this is far (far_weight, far_share)
+
+
+def is_far(x, sensor: SensorSpec):
+  """Pixels of (B, H, W) normalised inverse depth farther than FAR_M (and
+  not a drop: > ALPHA); not differentiated."""
+  x = lax.stop_gradient(x)
+  return (x > codec.ALPHA) & (x <= codec.encode(jnp.float32(FAR_M), sensor))
+
+
+def far_share(scan, sensor: SensorSpec, axis_name=None):
+  """The share of the pixels of ``scan`` that are returns beyond FAR_M."""
+  n = _psum(np.prod(scan.shape), axis_name)
+  return _psum(is_far(scan, sensor).sum(), axis_name) / n
+
+
+def far_penalty(sensor: SensorSpec, keep, inv_depth, real, axis_name=None):
+  """``far_weight``'s term: the mean over rows of the squared gap between
+  the share of generated pixels that are far returns, sum(keep x far) / n
+  with far judged on the complete ``inv_depth`` (x_tilde), and the share of
+  the ``real`` scans' pixels that are. Only ``keep`` is differentiated."""
+  n = _psum(keep.shape[0] * keep.shape[2], axis_name)
+  share = lambda a: _psum(a.sum(axis=(0, 2)), axis_name) / n
+  fake = share(keep * is_far(inv_depth, sensor))
+  target = lax.stop_gradient(share(is_far(real, sensor).astype(keep.dtype)))
+  return jnp.mean(jnp.square(fake - target))
+
+
+# Metric depth edges (m) of the ``rate_by='ring_depth'`` cells.
+RATE_DEPTH_EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
+RATE_DEPTH_BINS = len(RATE_DEPTH_EDGES) + 2  # bin 0 (no returned neighbour) and the ranges
+NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
+
+
+def neighbour_depth_bin(scan, keep, sensor: SensorSpec, edges=RATE_DEPTH_EDGES):
+  """(B, H, W) int: each pixel's depth bin, judged from its neighbours.
+
+  The mean normalised inverse depth of the returned pixels (``keep``) in a
+  (3, 5) window around each pixel, the pixel itself left out (columns wrap
+  around, rows do not), binned by the metric ``edges``: bin 0 when no
+  neighbour returned, then 1 (nearer than edges[0]) to len(edges) + 1
+  (beyond edges[-1]). Leaving the pixel out makes the bin of a drop and of a
+  return alike, so real scans, whose dropped depth is unknown, and
+  generated ones are binned the same way.
+  """
+  keep = keep.astype(jnp.float32)
+  x = jnp.where(keep > 0, scan, 0.0)
+  (dh, dw), h = NEIGHBOURS, scan.shape[1]
+  pad = lambda a: jnp.pad(a, ((0, 0), (dh, dh), (0, 0)))
+  xs, ks = pad(x), pad(keep)
+  total, count = jnp.zeros_like(x), jnp.zeros_like(x)
+  for i in range(2 * dh + 1):
+    for j in range(-dw, dw + 1):
+      if (i, j) == (dh, 0):
+        continue
+      total += jnp.roll(xs[:, i:i + h], j, axis=2)
+      count += jnp.roll(ks[:, i:i + h], j, axis=2)
+  mean = total / jnp.maximum(count, 1.0)
+  # Depth beyond an edge <=> inverse depth at or below its code.
+  codes = codec.encode(jnp.asarray(edges, jnp.float32), sensor)
+  far = jnp.sum(mean[..., None] <= codes, axis=-1)
+  return jnp.where(count > 0, 1 + far, 0)
+
+
+def ring_depth_cells(scan, keep, sensor: SensorSpec):
+  """(B, H, W) int: each pixel's (ring, depth bin) cell, ring * RATE_DEPTH_BINS
+  + neighbour_depth_bin; cells run over [0, H * RATE_DEPTH_BINS)."""
+  bins = neighbour_depth_bin(scan, keep, sensor)
+  return jnp.arange(scan.shape[1])[None, :, None] * RATE_DEPTH_BINS + bins
+
+
+def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int, axis_name=None,
+                      counted=None):
+  """The squared gap between the generated and the real keep rate of each
+  cell of ``cells`` / ``real_cells`` (ints in [0, num_cells): one per
+  pixel), weighted by the generated pixels in the cell, so each generated
+  pixel is pulled towards its cell's real rate as the other rate terms pull
+  it towards the ring's. Cells empty on either side weigh 0, and so do the
+  cells ``counted`` ((num_cells,) bools) marks False.
+  """
+  flat = lambda a: a.reshape(-1)
+  count = lambda c, w: _psum(jax.ops.segment_sum(flat(w), flat(c), num_cells), axis_name)
+  ones = jnp.ones_like(keep)
+  n_fake, n_real = count(cells, ones), count(real_cells, ones)
+  fake_rate = count(cells, keep) / jnp.maximum(n_fake, 1.0)
+  kept_real = lax.stop_gradient(count(real_cells, real_keep))
+  real_rate = kept_real / jnp.maximum(n_real, 1.0)
+  weight = jnp.where(n_real > 0, n_fake, 0.0)
+  if counted is not None:
+    weight = jnp.where(counted, weight, 0.0)
+  return jnp.sum(weight * jnp.square(fake_rate - real_rate)) / jnp.maximum(weight.sum(), 1.0)
+
+
+def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, axis_name=None, keep=None,
+                            skip_far: bool = False):
+  """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
+  cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are not
+  differentiated. ``keep``: the generated keep values to differentiate
+  (default: the mask ``fake[1]``, which bins the cells). ``skip_far``: the
+  cells whose depth bin lies beyond FAR_M weigh 0, so far_weight's term
+  alone sets how often far pixels return."""
+  cells = lambda scan, keep: ring_depth_cells(lax.stop_gradient(scan),
+                                              lax.stop_gradient(keep) > 0.5, sensor)
+  h = fake[0].shape[1]
+  keep = fake[1] if keep is None else keep
+  counted = None
+  if skip_far:  # bin 0 (no returned neighbour), then bins 1.. from 0 m, edges[0], ...
+    near = [True] + [start < FAR_M for start in (0.0,) + RATE_DEPTH_EDGES]
+    counted = jnp.asarray(np.tile(near, h))
+  return cell_rate_penalty(keep, real[1], cells(*fake), cells(*real), h * RATE_DEPTH_BINS,
+                           axis_name, counted)
+
+
+# ----------------------------------------------------------------------------
+# What a train step logs.
+# ----------------------------------------------------------------------------
+
+
+def diagnostics(sensor: SensorSpec, scan, mask, real, axis_name=None) -> dict:
+  """The drop metrics of one step: of the generated ``scan`` (B, H, W) with
+  its keep-``mask``, and of the ``real`` scans (drops at or below ALPHA)."""
+  return dict(
+      drop_rate=jnp.mean(scan <= codec.ALPHA),
+      mask_drop_rate=jnp.mean(mask < 0.5),
+      real_drop_rate=jnp.mean(real <= codec.ALPHA),
+      # Share of the generated returns that dip: dip_weight.
+      dip_share=outlier_share(dips, scan, axis_name),
+      real_dip_share=outlier_share(dips, real, axis_name),
+      # Share of them in front of both neighbours: peak_weight.
+      peak_share=outlier_share(peaks, scan, axis_name),
+      real_peak_share=outlier_share(peaks, real, axis_name),
+      # Share of the pixels that are returns beyond FAR_M: far_weight.
+      far_share=far_share(scan, sensor, axis_name),
+      real_far_share=far_share(real, sensor, axis_name))
