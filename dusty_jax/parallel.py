@@ -193,7 +193,8 @@ def fail_now(message: str):
   whose peer is lost cannot finish (JAX's exit handler would wait for the
   peer at its shutdown barrier, then abort with a C++ stack trace). With
   DUSTY_JAX_TRACEBACK=1 the stacks of all threads follow the line."""
-  print(f'error: {message}', file=sys.stderr, flush=True)
+  # On a line of its own: a progress bar may hold the current one.
+  print(f'\nerror: {message}', file=sys.stderr, flush=True)
   if os.environ.get('DUSTY_JAX_TRACEBACK'):
     faulthandler.dump_traceback(all_threads=True)
   sys.stdout.flush()

@@ -9,6 +9,9 @@ resumes from (exit 130): see cli.py. absl's log shows warnings and errors
 (``--verbosity=0`` for orbax's info lines too).
 """
 
+import os
+import sys
+
 from absl import app, flags, logging
 from ml_collections import config_flags
 
@@ -36,6 +39,11 @@ flags.DEFINE_string('coordinator', None,
                     'host:port of process 0 for a multi-host run.')
 flags.DEFINE_integer('num_processes', None, 'Processes in a multi-host run.')
 flags.DEFINE_integer('process_id', None, 'This process in a multi-host run.')
+flags.DEFINE_float('peer_timeout', parallel.PEER_TIMEOUT_S,
+                   'Seconds without a sign of life from another process of a '
+                   'multi-host run after which a process ends, saying the '
+                   'checkpoint a rerun of all processes resumes from.',
+                   lower_bound=1)
 
 
 def main(argv):
@@ -43,16 +51,27 @@ def main(argv):
     cli.fail(f'unexpected arguments: {argv[1:]}', cli.USAGE)
   if not FLAGS['verbosity'].present:
     logging.set_verbosity(logging.WARNING)
-  cli.run(_train)
+  try:
+    cli.run(_train)
+  except cli.Exit as e:
+    if parallel.joined() and not os.environ.get('DUSTY_JAX_TRACEBACK'):
+      # Its line is printed. JAX's exit handler would wait for the other
+      # processes at a shutdown barrier (for ever, if one is lost), then
+      # abort with a C++ stack trace.
+      sys.stdout.flush()
+      sys.stderr.flush()
+      os._exit(e.code)  # pylint: disable=protected-access
+    raise
 
 
 def _train():
   # Before JAX's first operation: several CPU devices (parallel.use_cpu_cores).
   parallel.use_cpu_cores(FLAGS.config.batch_size, FLAGS.num_processes or 1)
   parallel.initialize_distributed(FLAGS.coordinator, FLAGS.num_processes,
-                                  FLAGS.process_id)
+                                  FLAGS.process_id, FLAGS.peer_timeout)
   from dusty_jax import trainer  # after distributed init.
-  trainer.train_and_evaluate(FLAGS.config, FLAGS.workdir)
+  trainer.train_and_evaluate(FLAGS.config, FLAGS.workdir,
+                             peer_timeout=FLAGS.peer_timeout)
 
 
 if __name__ == '__main__':
