@@ -12,18 +12,22 @@ with ``key(SAMPLE_SEED + s)``. Restoration draws per scan
 
 from __future__ import annotations
 
+import json
+import os
 import sys
 
 import jax
 import numpy as np
 import tqdm
 
-from dusty_jax import codec, corrupt, inversion, sampling
+from dusty_jax import codec, corrupt, inversion, sampling, writers
+from dusty_jax.data import arrays
 from dusty_jax.generator import GeneratorParams
-from dusty_jax.metrics import calibration, protocol, reconstruction, records
+from dusty_jax.metrics import calibration, ground_truth, protocol, reconstruction, records
 
 SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
 TRAINING_ROW = 'training set'  # the label of the train vs test row
+RING_TABLE_SCANS = 1024  # training scans the per-ring keep-rate table counts
 RESTORE_KEYS = ('k_corrupt, k_search = split(key(seed)); scan i of the set is '
                 'corrupted with fold_in(k_corrupt, i) and its search starts from '
                 'fold_in(k_search, i), whatever the batch')
@@ -150,7 +154,7 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
                 num_steps: int = 1000, init='random', batch: int = 16, seed: int = 0,
                 protocol_name: str = 'reference', names=None, truth=None,
                 subset: str = 'every scan given', each=None,
-                progress: bool = False) -> dict:
+                progress: bool = False, ring_keep=None) -> dict:
   """Table III of a generator: scans restored by GAN inversion, scored
   against the scans before corruption.
 
@@ -162,7 +166,13 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
     names: a name per scan for the record (default its index).
     truth: (complete depth, drop probability) of the same scans, which only
       a simulator has; adds ``ground_truth``: x_tilde's errors against the
-      complete depth, and the measurability's calibration.
+      complete depth, the measurability's calibration, and ``placement``:
+      how its measurability ranks the scans' own drops
+      (metrics.ground_truth.measurability_scores: AUC on surfaces nearer
+      than 40 m, the AUC within rings there, ECE).
+    ring_keep: with ``truth``, the training split's keep rate per ring
+      (metrics.ground_truth.ring_keep_rate): adds ``ring_table``, the same
+      scores of that table, which a measurability should beat.
     subset: how the scans were chosen, for the record.
     each: called as ``each(start, clean, target, result)`` per batch (the
       invert tool writes its files there).
@@ -178,7 +188,7 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
   names = list(range(len(depth))) if names is None else list(names)
   if len(names) != len(depth):
     raise ValueError(f'{len(names)} names for {len(depth)} scans')
-  per_scan, measurability, complete = [], [], []
+  per_scan, measurability, complete, observed = [], [], [], []
   for start, d, clean, target, res in restore_batches(
       params, depth, corruption=corruption, num_steps=num_steps, init=init,
       batch=batch, seed=seed, progress=progress):
@@ -190,6 +200,7 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
     if truth is not None:
       sl = slice(start, start + len(d))
       measurability.append(res['measurability'])
+      observed.append(d)
       complete.append(reconstruction.completion_errors(res, truth[0][sl], sensor))
     if each is not None:
       each(start, clean, target, res)
@@ -203,11 +214,75 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
             'per_scan': per_scan, 'corrupt': corruption, 'steps': num_steps,
             'init': init if isinstance(init, str) else 'given latents'}
   if truth is not None and per_scan:
-    cal = calibration.reliability(np.concatenate(measurability),
-                                  1.0 - np.asarray(truth[1][:len(per_scan)]))
+    m = np.concatenate(measurability)
+    obs = np.concatenate(observed)
+    comp, prob = (np.asarray(t[:len(per_scan)]) for t in truth)
+    cal = calibration.reliability(m, 1.0 - prob)
+    brief = lambda scores: {k: scores[k] for k in PLACEMENT}
     record['ground_truth'] = {
         'complete_depth': {k: records.finite_mean(np.concatenate([c[k] for c in complete]))
                            for k in complete[0]},
         'ece': cal['ece'],
+        'placement': brief(ground_truth.measurability_scores(sensor, m, obs, comp, prob)),
         'reliability': {k: np.asarray(v).tolist() for k, v in cal.items() if k != 'ece'}}
+    if ring_keep is not None:
+      record['ground_truth']['ring_table'] = brief(
+          ground_truth.ring_table_scores(sensor, ring_keep, obs, comp, prob))
+  return record
+
+
+# What ``restoration`` reports of drop placement (ground_truth.measurability_scores).
+PLACEMENT = ('auc_near', 'auc_near_within_ring', 'auc_surface', 'ece', 'ece_near')
+
+
+def after_training(params: GeneratorParams, data_dir: str, out: str, *,
+                   num_synthesis: int = 200, points: int = 512, num_invert: int = 32,
+                   invert_steps: int = 300, picture_scans: int = 4,
+                   progress: bool = True) -> dict:
+  """A short evaluation of a freshly trained generator on its dataset's test
+  split: Table II on ``num_synthesis`` scans (one seed) and, where the data
+  is simulated, ``num_invert`` test scans inverted by ``invert_steps`` steps
+  and scored against the ground truth, beside the training split's per-ring
+  keep-rate table (:func:`restoration`'s ``ground_truth``). Writes
+  ``OUT/final_evaluation.json`` and ``OUT/final_evaluation.png`` (per test
+  scan: the scan, the inverted x_tilde and measurability, and, with ground
+  truth, the true return probability); returns the record."""
+  sensor = params.sensor
+  test = arrays.load_split(data_dir, 'test', sensor)
+  record = {'data': data_dir}
+  if num_synthesis:
+    rec = synthesis(params, test, num=num_synthesis, points=points, seeds=1,
+                    progress=progress)
+    row = rec['rows'][row_label(params, rec['tolerance'])]
+    record['synthesis'] = {'num': rec['num'], 'points': points,
+                           **{k: v[0] for k, v in row.items()}}
+  if num_invert:
+    n = min(num_invert, len(test))
+    truth = arrays.load_ground_truth(data_dir, 'test', sensor, n)
+    ring_keep = None
+    if truth is not None and params.variant.has_measurability:
+      ring_keep = ground_truth.ring_keep_rate(
+          arrays.load_split(data_dir, 'train', sensor)[:RING_TABLE_SCANS], sensor)
+    shown = []  # (scan, x_tilde, measurability) of the first scans
+
+    def keep_shown(start, clean, target, res):
+      for i in range(min(len(clean), picture_scans - start)):
+        shown.append((clean[i], res['inv_depth'][i], res['measurability'][i]))
+
+    rec = restoration(params, test[:n], num_steps=invert_steps, truth=truth,
+                      ring_keep=ring_keep, each=keep_shown, progress=progress)
+    record['restoration'] = {'num': rec['num'], 'steps': invert_steps, **rec['mean']}
+    if 'ground_truth' in rec:
+      record['ground_truth'] = {k: v for k, v in rec['ground_truth'].items()
+                                if k != 'reliability'}
+    rows = []
+    for i, (scan, inv_depth, measurability) in enumerate(shown):
+      rows += [[writers.inv_depth_tile(scan)], [writers.inv_depth_tile(inv_depth)],
+               [writers.prob_tile(measurability)]]
+      if truth is not None:
+        rows.append([writers.prob_tile(1.0 - truth[1][i])])
+    writers.save_grid(os.path.join(out, 'final_evaluation.png'), rows, scale=2)
+  os.makedirs(out, exist_ok=True)
+  with open(os.path.join(out, 'final_evaluation.json'), 'w') as f:
+    json.dump(record, f, indent=2)
   return record

@@ -247,3 +247,32 @@ def test_synthesis_is_the_protocol_subset_over_seeds(tiny):
   assert list(evaluation.synthesis(params, test, None, num=4, points=16, seeds=1)
               ['rows']) == [label]
   json.dumps(rec)
+
+
+def test_after_training_reports_and_draws(smoke_run, tmp_path):
+  """The short evaluation a training ends with: Table II on a few test scans,
+  and drop placement of inverted test scans beside the per-ring table,
+  equal to evaluation.restoration's on the same scans; one PNG row per
+  tile (scan, x_tilde, measurability, true return probability)."""
+  from PIL import Image
+  from dusty_jax import evaluation, generator, sensor as sensor_lib
+  from dusty_jax.data import arrays, pipeline
+  config, workdir, _ = smoke_run
+  params, _ = generator.load(workdir, log=lambda *_: None)
+  data = pipeline.dataset_dir(config, sensor_lib.from_config(config.sensor), log=lambda m: None)
+  rec = evaluation.after_training(params, data, str(tmp_path), num_synthesis=4, points=64,
+                                  num_invert=3, invert_steps=3, picture_scans=2,
+                                  progress=False)
+  assert json.load(open(tmp_path / 'final_evaluation.json')) == json.loads(json.dumps(rec))
+  assert rec['synthesis']['num'] == 4 and np.isfinite(rec['synthesis']['mmd'])
+  test = arrays.load_split(data, 'test', params.sensor)
+  direct = evaluation.restoration(params, test[:3], num_steps=3,
+                                  truth=arrays.load_ground_truth(data, 'test', params.sensor, 3))
+  assert rec['restoration']['abs_rel'] == pytest.approx(direct['mean']['abs_rel'])
+  assert rec['ground_truth']['placement'] == pytest.approx(direct['ground_truth']['placement'],
+                                                           nan_ok=True)
+  within = rec['ground_truth']['ring_table']['auc_near_within_ring']
+  assert within == 0.5 or np.isnan(within)  # a table knows nothing within a ring
+  h, w = params.sensor.shape
+  image = Image.open(tmp_path / 'final_evaluation.png')
+  assert image.size == (2 * w, 2 * (8 * (h + 2) - 2))  # 2 scans x 4 tiles, scale 2

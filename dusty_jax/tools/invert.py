@@ -86,7 +86,7 @@ def run(a):
   # answer at once.
   from dusty_jax import corrupt, evaluation, pretrained
   from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
-  from dusty_jax.metrics import reconstruction, records  # (as above)
+  from dusty_jax.metrics import ground_truth, reconstruction, records  # (as above)
 
   if bool(a.input) == bool(a.split):
     raise ValueError('give exactly one of --input and --split')
@@ -97,7 +97,7 @@ def run(a):
     from dusty_jax import encoder  # only for this start
     encoder.check_has_encoder(params, a.workdir, pretrained.with_encoder())
   sensor = params.sensor
-  truth = None
+  truth = ring_keep = None
   if a.input:
     items = scan_files.read_scans(a.input, sensor)
     names, depth = [n for n, _ in items], np.stack([d for _, d in items])
@@ -110,6 +110,9 @@ def run(a):
     depth = arrays.load_split(d, a.split, sensor)[:a.num]
     names = [f'{a.split}_{i:05d}' for i in range(len(depth))]
     truth = arrays.load_ground_truth(d, a.split, sensor, len(depth))
+    if truth is not None:  # the per-ring table a measurability should beat
+      ring_keep = ground_truth.ring_keep_rate(
+          arrays.load_split(d, 'train', sensor)[:evaluation.RING_TABLE_SCANS], sensor)
     subset = f'the first {a.num} scans of split {a.split!r}'
   os.makedirs(a.out, exist_ok=True)
 
@@ -121,7 +124,7 @@ def run(a):
   rec = evaluation.restoration(
       params, depth, corruption=a.corrupt, num_steps=a.steps, init=a.init,
       batch=a.batch, seed=a.seed, protocol_name=a.protocol, names=names, truth=truth,
-      subset=subset, each=write if a.input else None, progress=True)
+      subset=subset, each=write if a.input else None, progress=True, ring_keep=ring_keep)
   with open(os.path.join(a.out, 'metrics.json'), 'w') as f:
     json.dump(rec, f, indent=2)
   label = f'{params.model}' + (f' ({a.corrupt})' if a.corrupt else '')
@@ -140,6 +143,13 @@ def report_ground_truth(gt: dict, out: str):
   print(records.format_table({'x_tilde vs complete depth': gt['complete_depth']},
                              reconstruction.COLUMNS))
   print(f'measurability vs true return probability: ECE {gt["ece"]:.4f}')
+  rows = {'measurability': gt['placement']}
+  if 'ring_table' in gt:
+    rows["training split's keep rate per ring"] = gt['ring_table']
+  num = lambda v: f'{v:.3f}' if np.isfinite(v) else 'n/a'  # n/a: no pair to rank
+  for name, m in rows.items():
+    print(f'{name}: AUC of the drops on surfaces < 40 m {num(m["auc_near"])}, within rings '
+          f'{num(m["auc_near_within_ring"])}, ECE {m["ece"]:.4f}')
   bins = np.arange(len(gt['reliability']['pred']))
   writers.line_plot(os.path.join(out, 'reliability.png'),
                     {'measured': (bins, gt['reliability']['truth']),
