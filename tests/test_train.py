@@ -173,8 +173,11 @@ def test_run_outputs(smoke_run):
   assert sorted(os.listdir(os.path.join(workdir, 'checkpoints'))) == ['2', '4']
   assert os.path.isfile(os.path.join(workdir, 'images', 'step_0000004.png'))
   lines = [json.loads(l) for l in open(os.path.join(workdir, 'metrics.jsonl'))]
-  assert [l['step'] for l in lines] == [2, 4]
+  assert [l['step'] for l in lines] == [1, 2, 4]  # the first step, then log_every
   assert all(np.isfinite(l['loss_d']) and l['images_per_sec'] > 0 for l in lines)
+  # The devices it trained on (the test session's 4 CPU devices).
+  assert json.load(open(os.path.join(workdir, 'config.json')))['trained_on'] == {
+      'devices': jax.device_count(), 'processes': 1, 'platform': 'cpu'}
   events = [f for f in os.listdir(workdir) if f.startswith('events.out.tfevents')]
   records = read_events(os.path.join(workdir, events[0]))
   assert records[0].file_version == 'brain.Event:2'
@@ -183,6 +186,25 @@ def test_run_outputs(smoke_run):
     expected = {(l['step'], k, float(np.float32(v))) for k, v in l.items()
                 if k not in ('step', 'time')}
     assert expected <= set(logged)
+
+
+def test_checkpoints_by_wall_time(smoke_run, tmp_path):
+  """checkpoint_minutes saves when that long has passed since the last save,
+  whatever checkpoint_every says (a tiny value: every step); smoke_run's
+  default of 10 minutes saved by steps only."""
+  config = smoke_run[0].copy_and_resolve_references()
+  config.update(num_steps=3, checkpoint_every=1000, checkpoint_minutes=1e-9,
+                keep_checkpoints=5, image_every=1000)
+  trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
+  assert sorted(os.listdir(tmp_path / 'w' / 'checkpoints'), key=int) == ['1', '2', '3']
+
+
+@pytest.mark.parametrize('minutes', [-1.0, float('nan'), float('inf')])
+def test_checkpoint_minutes_is_checked(minutes):
+  config = tiny_config()
+  config.checkpoint_minutes = minutes
+  with pytest.raises(configs.ConfigError, match='checkpoint_minutes'):
+    configs.validate(config)
 
 
 def test_load_checkpoint_and_sample(smoke_run):

@@ -1,0 +1,199 @@
+"""A run of several processes: it resumes after losing one, the survivor ends
+in one line, and a run directory has one writer (issue 38).
+
+The 2-process runs are the training command on experiments/smoke.py, each
+process with one CPU device, talking over localhost.
+"""
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from dusty_jax import checkpoint, parallel
+from conftest import FAST_COMPILE
+
+HERE = os.path.dirname(__file__)
+SMOKE = os.path.join(HERE, '..', 'experiments', 'smoke.py')
+# Few steps, a checkpoint every 2, no pictures but the last.
+FLAGS = ['--config.checkpoint_every=2', '--config.log_every=2',
+         '--config.image_every=100000']
+ITEMS = ('g_params', 'd_params', 'ema_params', 'g_opt', 'd_opt')
+NOISE = re.compile(r'Traceback|Check failure|Fatal Python|coordination_service|^[EFW]\d{4} ',
+                   re.M)
+
+
+def _env(tmp_path):
+  env = dict(os.environ, DUSTY_JAX_CACHE=str(tmp_path / 'cache'))
+  env['XLA_FLAGS'] = FAST_COMPILE  # one CPU device per process
+  env.pop('DUSTY_JAX_TRACEBACK', None)
+  return env
+
+
+def _free_port():
+  with socket.socket() as s:
+    s.bind(('127.0.0.1', 0))
+    return s.getsockname()[1]
+
+
+def _train(tmp_path, workdir, *flags, processes=2):
+  """Starts the training command's processes; their output goes to
+  ``workdir``.K.log beside the run directory."""
+  port = _free_port()
+  procs = []
+  for k in range(processes):
+    multi = (['--coordinator', f'127.0.0.1:{port}', '--num_processes', str(processes),
+              '--process_id', str(k)] if processes > 1 else [])
+    log = open(f'{workdir}.{k}.log', 'w')
+    procs.append(subprocess.Popen(
+        [sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE, '--workdir',
+         str(workdir), f'--config.data.cache={tmp_path / "cache"}', *FLAGS, *multi,
+         *flags], env=_env(tmp_path), stdout=log, stderr=subprocess.STDOUT))
+    log.close()
+  return procs
+
+
+def _log(workdir, k=0):
+  with open(f'{workdir}.{k}.log') as f:
+    return f.read()
+
+
+def _messages(text):
+  """The lines of a log without the progress bar's frames."""
+  return [l for l in re.split(r'[\r\n]+', text)
+          if l.strip() and not re.search(r'\d+%\|', l) and not l.startswith('[Gloo]')]
+
+
+def _finish(procs, workdir, timeout=900):
+  codes = [p.wait(timeout=timeout) for p in procs]
+  assert codes == [0] * len(procs), '\n'.join(
+      f'--- process {k} (exit {c}):\n{_log(workdir, k)[-3000:]}'
+      for k, c in enumerate(codes))
+
+
+def _wait_for(path, procs, workdir, timeout=900):
+  end = time.time() + timeout
+  while not os.path.exists(path):
+    for k, p in enumerate(procs):
+      assert p.poll() is None, f'process {k} ended early:\n{_log(workdir, k)[-3000:]}'
+    assert time.time() < end, f'{path} did not appear'
+    time.sleep(0.2)
+
+
+def _state(workdir, step):
+  directory = os.path.join(workdir, checkpoint.DIRECTORY)
+  return {name: checkpoint.restore_item(directory, name, step)[0] for name in ITEMS}
+
+
+def _assert_close(got, want, rtol, atol):
+  import jax
+  for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(got), jax.tree.leaves(want)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=rtol, atol=atol,
+                               err_msg=jax.tree_util.keystr(path))
+
+
+def test_a_lost_process_then_a_rerun_resumes_as_if_uninterrupted(tmp_path):
+  run = str(tmp_path / 'run')
+  procs = _train(tmp_path, run, '--config.num_steps=100000')
+  try:
+    _wait_for(os.path.join(run, checkpoint.DIRECTORY, '2'), procs, run)
+    procs[1].send_signal(signal.SIGKILL)
+    # The survivor ends by itself (a lost peer), in the project's words.
+    assert procs[0].wait(timeout=600) == 1
+  finally:
+    for p in procs:
+      p.kill()
+      p.wait()
+  last = checkpoint.saved_steps(run)[-1]
+  lines = _messages(_log(run))
+  assert lines[-1].startswith('error: a process of this run was lost (') and lines[-1].endswith(
+      f'the last checkpoint is step {last} in {run}; rerun all 2 processes to resume from '
+      'it'), lines[-5:]
+  assert not NOISE.search(_log(run)), _log(run)[-3000:]
+  # Both processes had their lock on the run directory.
+  assert {'train.lock', 'train.lock.1'} <= set(os.listdir(run))
+
+  # Side by side: the same 2 processes again, to 2 steps beyond the
+  # checkpoint; from a copy, one process with the machine's device count;
+  # and an uninterrupted run of 2 processes.
+  end = last + 2
+  alone, whole = str(tmp_path / 'alone'), str(tmp_path / 'whole')
+  shutil.copytree(run, alone)
+  runs = {d: _train(tmp_path, d, f'--config.num_steps={end}', processes=1 if d == alone else 2)
+          for d in (run, alone, whole)}
+  for d, procs in runs.items():
+    _finish(procs, d)
+  assert all(f'resumed from step {last}' in _log(run, k) for k in (0, 1))
+  assert f'resumed from step {last}' in _log(alone)
+
+  want = _state(whole, end)
+  _assert_close(_state(run, end), want, rtol=1e-6, atol=1e-7)
+  # Another device count: the same training, to float rounding.
+  _assert_close(_state(alone, end), want, rtol=1e-4, atol=1e-5)
+  # metrics.jsonl holds each step once, in order, up to the end.
+  steps = [json.loads(l)['step'] for l in open(os.path.join(run, 'metrics.jsonl'))]
+  assert steps == sorted(set(steps)) and steps[-1] == end
+  trained_on = json.load(open(os.path.join(run, 'config.json')))['trained_on']
+  assert (trained_on['devices'], trained_on['processes']) == (2, 2)
+
+
+def test_a_silent_process_ends_its_peer_within_peer_timeout(tmp_path):
+  run = str(tmp_path / 'run')
+  procs = _train(tmp_path, run, '--config.num_steps=100000', '--peer_timeout=5')
+  try:
+    # The watch starts before the lock files are written.
+    _wait_for(os.path.join(run, 'train.lock.1'), procs, run)
+    procs[1].send_signal(signal.SIGSTOP)  # alive, but silent (a hung host)
+    assert procs[0].wait(timeout=600) == 1
+  finally:
+    for p in procs:
+      p.kill()
+      p.wait()
+  lines = _messages(_log(run))
+  assert lines[-1].startswith(
+      'error: a process of this run was lost (process 1 gave no sign of life for 5 s); '), lines
+  assert re.search(r'(no checkpoint was saved yet; rerun all 2 processes to start afresh|'
+                   r'the last checkpoint is step \d+ in .*; rerun all 2 processes)$',
+                   lines[-1]), lines[-1]
+  assert not NOISE.search(_log(run)), _log(run)[-3000:]
+
+
+def test_a_second_training_on_a_held_run_directory_refuses_in_one_line(tmp_path):
+  run = tmp_path / 'run'
+  with parallel.hold_workdir(str(run)):
+    res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE,
+                          '--workdir', str(run)], env=_env(tmp_path),
+                         capture_output=True, text=True, timeout=600)
+  assert res.returncode == 1, res.stderr[-3000:]
+  assert _messages(res.stderr) == [
+      f'error: {run} is in use by another training ({run}/train.lock is held by pid '
+      f'{os.getpid()} on host {socket.gethostname()}); wait for it to end, or use '
+      'another --workdir'], res.stderr[-3000:]
+  assert os.listdir(run) == ['train.lock']  # nothing written
+
+
+def test_a_killed_holder_leaves_nothing_to_clean(tmp_path):
+  run = str(tmp_path / 'run')
+  holder = subprocess.Popen(
+      [sys.executable, '-c', 'import sys, time\nfrom dusty_jax import parallel\n'
+       f'with parallel.hold_workdir({run!r}):\n  print("held", flush=True)\n'
+       '  time.sleep(600)'], env=_env(tmp_path), stdout=subprocess.PIPE, text=True)
+  try:
+    assert holder.stdout.readline().strip() == 'held'
+    with pytest.raises(parallel.WorkdirInUse, match=f'held by pid {holder.pid} on host'):
+      with parallel.hold_workdir(run):
+        pass
+  finally:
+    holder.kill()  # SIGKILL: no handler of ours runs
+    holder.wait()
+  with parallel.hold_workdir(run):  # the OS released it
+    with open(os.path.join(run, parallel.LOCK_FILE)) as f:
+      assert f.read() == f'pid {os.getpid()} on host {socket.gethostname()}\n'
