@@ -298,7 +298,10 @@ def hold_workdir(workdir: str):
   run), naming its holder's pid and host. The OS drops the lock when the
   process ends, kill -9 included, so nothing is left to clean by hand. If
   any process of the run finds its lock held, every process refuses, in
-  one line naming the holder, before anything is written."""
+  one line naming the holder, before anything is written. A directory it
+  made, left holding nothing but lock files (a training that failed
+  before writing), is removed again."""
+  made = not os.path.isdir(workdir)
   os.makedirs(workdir, exist_ok=True)
   k = jax.process_index()
   path = os.path.join(workdir, LOCK_FILE + (f'.{k}' if k else ''))
@@ -320,4 +323,8 @@ def hold_workdir(workdir: str):
     os.pwrite(fd, f'pid {os.getpid()} on host {socket.gethostname()}\n'.encode(), 0)
     yield
   finally:
+    if made and all(f.startswith(LOCK_FILE) for f in os.listdir(workdir)):
+      with contextlib.suppress(OSError):
+        os.unlink(path)
+        os.rmdir(workdir)  # fails while another process's lock file is there
     os.close(fd)  # releases the lock

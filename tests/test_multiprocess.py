@@ -168,6 +168,7 @@ def test_a_silent_process_ends_its_peer_within_peer_timeout(tmp_path):
 
 def test_a_second_training_on_a_held_run_directory_refuses_in_one_line(tmp_path):
   run = tmp_path / 'run'
+  run.mkdir()  # (a directory the lock made, it would remove with the lock)
   with parallel.hold_workdir(str(run)):
     res = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE,
                           '--workdir', str(run)], env=_env(tmp_path),
