@@ -200,6 +200,8 @@ def main():
   p.add_argument('--hlo_configs', default='',
                  help='with --hlo: only the HLO_CONFIGS whose name holds one of these '
                       '(comma-separated)')
+  p.add_argument('--hlo_what', default='step,update',
+                 help="with --hlo: 'step' (whole), 'update' (without the metrics) or both")
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'compare_commits.json'))
   a = p.parse_args()
   common.print_banner()
@@ -225,7 +227,7 @@ def main():
         for name, make in HLO_CONFIGS.items():
           if wanted and not any(w in name for w in wanted):
             continue
-          for what in ('step', 'update'):
+          for what in a.hlo_what.split(','):
             progs = {n: compiled_program(trees[n], make(), what) for n in trees}
             same = progs['before'] == progs['after']
             only = {n: len(set(progs[n]) - set(progs[o]))

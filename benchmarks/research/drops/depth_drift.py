@@ -7,8 +7,8 @@
 Variants that hold their drops can lose their depth: the inverted x_tilde
 of held-out scans lies far behind the surfaces (README.md here, "Depth
 that survives the drops"). For each run this reports
-  * over training, ``depth_gap`` from its metrics.jsonl (runs trained since
-    the metric exists): the mean over rings of |mean returned value of the
+  * over training, ``depth_gap`` from its metrics.jsonl (runs trained while
+    the metric existed, up to f597033): the mean over rings of |mean returned value of the
     generated scans - the real batch's|, in normalised inverse depth;
   * at each kept checkpoint (train with ``--config.keep_every=500`` to keep
     them all), on ``--num`` held-out simulated test scans
