@@ -34,8 +34,8 @@ import optax
 import tqdm
 from jax import lax
 
-from dusty_jax import (augment, checkpoint, codec, configs, drops, errors, generator, losses,
-                       models, parallel, sampling, writers)
+from dusty_jax import (augment, checkpoint, codec, configs, drops, errors, evaluation, generator,
+                       losses, models, parallel, sampling, writers)
 from dusty_jax import sensor as sensor_lib
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.parallel import AXIS
@@ -547,4 +547,31 @@ def _train(config, workdir: str, log, watch) -> TrainState:
       # A second failure (the disk that failed a checkpoint also fails the
       # metrics) must not replace the one already on its way.
       writer.close(quiet=not finished)
+  fe = config.final_eval
+  if is_main and (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
+      os.path.join(workdir, 'final_evaluation.json')):
+    log('short evaluation on the test split (config final_eval)')
+    ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
+    log(_summary(evaluation.after_training(
+        ema, data_dir, workdir, num_synthesis=fe.num_synthesis, points=fe.points,
+        num_invert=fe.num_invert, invert_steps=fe.invert_steps, progress=is_main)))
   return state
+
+
+def _summary(record: dict) -> str:
+  """The lines a training ends with, of evaluation.after_training's record."""
+  lines = []
+  if 'synthesis' in record:
+    m = record['synthesis']
+    lines.append(f'Table II on {m["num"]} test scans ({m["points"]} points): JSD x1e2 '
+                 f'{100 * m["jsd"]:.1f}, COV {100 * m["cov"]:.1f}%, MMD x1e3 '
+                 f'{1e3 * m["mmd"]:.1f}, 1-NNA {100 * m["1nna"]:.1f}%, SWD {m["swd"]:.3f}')
+  placement = record.get('ground_truth', {})
+  for name, key in (('measurability', 'placement'),
+                    ("the training split's keep rate per ring", 'ring_table')):
+    if key in placement:
+      m = placement[key]
+      lines.append(f'{name}: AUC of the drops on surfaces < 40 m {m["auc_near"]:.3f}, '
+                   f'within rings {m["auc_near_within_ring"]:.3f}, ECE {m["ece"]:.3f}')
+  lines.append('written: final_evaluation.json, final_evaluation.png')
+  return '\n'.join(lines)

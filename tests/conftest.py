@@ -94,6 +94,8 @@ def smoke_run(tmp_path_factory):
                        image_every=4, r1_every=2)
   config.data.cache = str(base / 'cache')
   config.data.num_synthetic = 40  # 4 test scans for the evaluation CLI
+  # The short evaluation a training ends with, on those scans.
+  config.final_eval.update(num_synthesis=4, points=64, num_invert=2, invert_steps=2)
   workdir = str(base / 'work')
   state = trainer.train_and_evaluate(config, workdir, log=lambda m: None)
   return config, workdir, parallel.to_host(state)
