@@ -189,14 +189,15 @@ def wait(mngr: ocp.CheckpointManager):
 
 
 def _no_space(e: BaseException) -> bool:
-  for x in _chain(e):
+  for x in causes(e):
     if (isinstance(x, OSError) and x.errno == errno.ENOSPC) or re.search(
         r'RESOURCE_EXHAUSTED|No space left on device|os_error_code=.?28', str(x)):
       return True
   return False
 
 
-def _chain(e: BaseException):
+def causes(e: BaseException) -> list:
+  """``e`` and the exceptions it was raised from or during, in order."""
   seen = []
   while e is not None and e not in seen:
     seen.append(e)
@@ -210,7 +211,7 @@ def _write_errors(mngr, step):
     yield
   except Exception as e:  # orbax and TensorStore raise many types.
     directory = str(mngr.directory)
-    text = ' '.join(str(x) for x in _chain(e))
+    text = ' '.join(str(x) for x in causes(e))
     failed = re.search(re.escape(directory.rstrip('/')) + r'/(\d+)\.orbax-checkpoint-tmp',
                        text)
     failed = int(failed.group(1)) if failed else step
@@ -332,7 +333,7 @@ def _damage(step_dir: str, e: Exception) -> str:
   names = {os.path.basename(f) for f in files}
   if '_CHECKPOINT_METADATA' not in names or '_METADATA' not in names:
     return 'metadata missing'
-  text = ' '.join(str(x) for x in _chain(e))
+  text = ' '.join(str(x) for x in causes(e))
   if re.search(r'OUT_OF_RANGE|truncat|reading array index|Error reading', text):
     return 'data file truncated'
   if re.search(r'DATA_LOSS|checksum|corrupt', text, re.I):

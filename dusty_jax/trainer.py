@@ -421,20 +421,12 @@ def train_and_evaluate(config, workdir: str, log=print,
       state = _train(config, workdir, log, watch)
   except BaseException as e:
     watch.close()
-    if any(parallel.is_peer_loss(x) for x in _causes(e)) and not os.environ.get(
+    if any(parallel.is_peer_loss(x) for x in checkpoint.causes(e)) and not os.environ.get(
         'DUSTY_JAX_TRACEBACK'):
       watch.lost(_first_line(e))
     raise
   watch.finish()
   return state
-
-
-def _causes(e: BaseException):
-  seen = []
-  while e is not None and e not in seen:
-    seen.append(e)
-    e = e.__cause__ or e.__context__
-  return seen
 
 
 def _first_line(e: BaseException) -> str:
