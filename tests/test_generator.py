@@ -223,5 +223,6 @@ def test_generator_files_alone_and_what_is_refused(smoke_run, tmp_path):
   with pytest.raises(SystemExit, match='a dusty_jax generator file'):
     convert.main(['--pth', npz, '--workdir', str(tmp_path / 'converted')])
   assert not (tmp_path / 'converted').exists()
-  with pytest.raises(SystemExit, match='needs a run directory'):
+  # A generator file names no dataset: evaluate asks for one (--data_dir).
+  with pytest.raises(SystemExit, match='no config.json naming a dataset.*give --data_dir'):
     evaluate.main(['--workdir', npz])
