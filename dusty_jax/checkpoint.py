@@ -132,16 +132,18 @@ def quiet():
 
 
 def manager(workdir: str, keep: int = 3, interval: int = 1,
-            keep_every: int = 0) -> ocp.CheckpointManager:
+            keep_every: int = 0, cleanup_tmp: bool = False) -> ocp.CheckpointManager:
   """The run's checkpoint manager: the last ``keep`` steps, and with
-  ``keep_every`` also every step that is a multiple of it."""
+  ``keep_every`` also every step that is a multiple of it.
+
+  ``cleanup_tmp``: remove the tmp directories of saves cut short (a kill, a
+  lost peer), which would block saving those steps again. Only for a caller
+  that holds the run directory alone (the trainer, parallel.hold_workdir):
+  another's save in progress would be deleted."""
   path = os.path.join(os.path.abspath(workdir), DIRECTORY)
-  # cleanup_tmp_directories: a save cut short (a kill, a lost peer) leaves a
-  # step's tmp directory, which would block saving that step again; the
-  # trainer holds the run directory alone (parallel.hold_workdir).
   opts = ocp.CheckpointManagerOptions(max_to_keep=keep, keep_period=keep_every or None,
                                       save_interval_steps=interval, create=True,
-                                      cleanup_tmp_directories=True)
+                                      cleanup_tmp_directories=cleanup_tmp)
   with quiet():  # it reads every step's metadata, warning about damaged ones.
     return ocp.CheckpointManager(path, options=opts)
 
@@ -253,7 +255,8 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
     return target, None
 
   def move_aside(step):
-    if jax.process_index() != 0:  # the primary process moves it for all.
+    if jax.process_index() != 0:  # the primary process moves it for all,
+      ocp.multihost.sync_global_processes(f'dusty_jax_moved_aside_{step}')  # then they reload.
       with quiet():
         mngr.reload()
       return
@@ -264,6 +267,8 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
       os.makedirs(os.path.dirname(dst), exist_ok=True)
       os.replace(src, dst)
       log(f'moved the damaged step {step} to {dst}')
+    if jax.process_count() > 1:
+      ocp.multihost.sync_global_processes(f'dusty_jax_moved_aside_{step}')
     with quiet():
       mngr.reload()
 

@@ -27,6 +27,7 @@ import numpy as np
 from jax import lax
 
 from dusty_jax import codec
+from dusty_jax.metrics import ground_truth
 from dusty_jax.sensor import SensorSpec
 
 
@@ -127,10 +128,7 @@ RING_KEEP_CLIP = 0.01  # keep rates start within [0.01, 0.99]: finite logits.
 def ring_keep_rate(depth, sensor: SensorSpec, num: int = 1024) -> np.ndarray:
   """(H,) the fraction of returned pixels per ring over the first ``num``
   scans of ``depth`` (metric, 0 or out of range: dropped)."""
-  d = np.asarray(depth[:num], np.float32)
-  if not len(d):
-    raise ValueError('ring_keep_rate: no scans to count returns in')
-  return np.asarray(codec.valid_depth(d, sensor), np.float64).mean(axis=(0, 2))
+  return ground_truth.ring_keep_rate(depth[:num], sensor)
 
 
 def set_ring_bias(g_params, ring_keep, mask_bias: float = 0.0):

@@ -28,6 +28,7 @@ from dusty_jax.metrics import calibration, ground_truth, protocol, reconstructio
 SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
 TRAINING_ROW = 'training set'  # the label of the train vs test row
 RING_TABLE_SCANS = 1024  # training scans the per-ring keep-rate table counts
+AFTER_TRAINING = 'final_evaluation'  # after_training's files in the run directory
 RESTORE_KEYS = ('k_corrupt, k_search = split(key(seed)); scan i of the set is '
                 'corrupted with fold_in(k_corrupt, i) and its search starts from '
                 'fold_in(k_search, i), whatever the batch')
@@ -259,10 +260,8 @@ def after_training(params: GeneratorParams, data_dir: str, out: str, *,
   if num_invert:
     n = min(num_invert, len(test))
     truth = arrays.load_ground_truth(data_dir, 'test', sensor, n)
-    ring_keep = None
-    if truth is not None and params.variant.has_measurability:
-      ring_keep = ground_truth.ring_keep_rate(
-          arrays.load_split(data_dir, 'train', sensor)[:RING_TABLE_SCANS], sensor)
+    ring_keep = (training_ring_keep(data_dir, sensor)
+                 if truth is not None and params.variant.has_measurability else None)
     shown = []  # (scan, x_tilde, measurability) of the first scans
 
     def keep_shown(start, clean, target, res):
@@ -281,8 +280,42 @@ def after_training(params: GeneratorParams, data_dir: str, out: str, *,
                [writers.prob_tile(measurability)]]
       if truth is not None:
         rows.append([writers.prob_tile(1.0 - truth[1][i])])
-    writers.save_grid(os.path.join(out, 'final_evaluation.png'), rows, scale=2)
+    writers.save_grid(os.path.join(out, AFTER_TRAINING + '.png'), rows, scale=2)
   os.makedirs(out, exist_ok=True)
-  with open(os.path.join(out, 'final_evaluation.json'), 'w') as f:
+  with open(os.path.join(out, AFTER_TRAINING + '.json'), 'w') as f:
     json.dump(record, f, indent=2)
   return record
+
+
+def training_ring_keep(data_dir: str, sensor) -> np.ndarray:
+  """(H,) the keep rate per ring of a prepared dataset's training split (its
+  first RING_TABLE_SCANS scans): the table a measurability should beat."""
+  return ground_truth.ring_keep_rate(
+      arrays.load_split(data_dir, 'train', sensor)[:RING_TABLE_SCANS], sensor)
+
+
+def placement_lines(gt: dict) -> list[str]:
+  """One line per map of a ``ground_truth`` record (restoration's): the
+  measurability and, where present, the per-ring table."""
+  num = lambda v: f'{v:.3f}' if np.isfinite(v) else 'n/a'  # n/a: no pair to rank
+  lines = []
+  for name, key in (('measurability', 'placement'),
+                    ("the training split's keep rate per ring", 'ring_table')):
+    if key in gt:
+      m = gt[key]
+      lines.append(f'{name}: AUC of the drops on surfaces < 40 m {num(m["auc_near"])}, '
+                   f'within rings {num(m["auc_near_within_ring"])}, ECE {m["ece"]:.4f}')
+  return lines
+
+
+def summary(record: dict) -> str:
+  """The lines a training ends with, of :func:`after_training`'s record."""
+  lines = []
+  if 'synthesis' in record:
+    m = record['synthesis']
+    lines.append(f'Table II on {m["num"]} test scans ({m["points"]} points): JSD x1e2 '
+                 f'{100 * m["jsd"]:.1f}, COV {100 * m["cov"]:.1f}%, MMD x1e3 '
+                 f'{1e3 * m["mmd"]:.1f}, 1-NNA {100 * m["1nna"]:.1f}%, SWD {m["swd"]:.3f}')
+  lines += placement_lines(record.get('ground_truth', {}))
+  lines.append(f'written: {AFTER_TRAINING}.json, {AFTER_TRAINING}.png')
+  return '\n'.join(lines)

@@ -457,7 +457,7 @@ def _train(config, workdir: str, log, watch) -> TrainState:
       tolerance = generator.read_spec(workdir)[2]  # may have been tuned since.
     generator.save_spec(workdir, sensor, setup.settings, angles, tolerance)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints,
-                            keep_every=config.keep_every)
+                            keep_every=config.keep_every, cleanup_tmp=True)
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
   state = init_state(setup, k_init, drops.ring_keep_rate(depth, sensor)
@@ -540,30 +540,16 @@ def _train(config, workdir: str, log, watch) -> TrainState:
       # metrics) must not replace the one already on its way.
       writer.close(quiet=not finished)
   fe = config.final_eval
-  if is_main and (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
-      os.path.join(workdir, 'final_evaluation.json')):
-    log('short evaluation on the test split (config final_eval)')
-    ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
-    log(_summary(evaluation.after_training(
-        ema, data_dir, workdir, num_synthesis=fe.num_synthesis, points=fe.points,
-        num_invert=fe.num_invert, invert_steps=fe.invert_steps, progress=is_main)))
+  if (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
+      os.path.join(workdir, evaluation.AFTER_TRAINING + '.json')):
+    if jax.process_count() > 1:  # the others would wait for process 0 at JAX's exit
+      if is_main:
+        log(f'final_eval is left to one process: python -m dusty_jax.tools.evaluate '
+            f'--workdir {workdir}')
+    elif is_main:
+      log('short evaluation on the test split (config final_eval)')
+      ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
+      log(evaluation.summary(evaluation.after_training(
+          ema, data_dir, workdir, num_synthesis=fe.num_synthesis, points=fe.points,
+          num_invert=fe.num_invert, invert_steps=fe.invert_steps)))
   return state
-
-
-def _summary(record: dict) -> str:
-  """The lines a training ends with, of evaluation.after_training's record."""
-  lines = []
-  if 'synthesis' in record:
-    m = record['synthesis']
-    lines.append(f'Table II on {m["num"]} test scans ({m["points"]} points): JSD x1e2 '
-                 f'{100 * m["jsd"]:.1f}, COV {100 * m["cov"]:.1f}%, MMD x1e3 '
-                 f'{1e3 * m["mmd"]:.1f}, 1-NNA {100 * m["1nna"]:.1f}%, SWD {m["swd"]:.3f}')
-  placement = record.get('ground_truth', {})
-  for name, key in (('measurability', 'placement'),
-                    ("the training split's keep rate per ring", 'ring_table')):
-    if key in placement:
-      m = placement[key]
-      lines.append(f'{name}: AUC of the drops on surfaces < 40 m {m["auc_near"]:.3f}, '
-                   f'within rings {m["auc_near_within_ring"]:.3f}, ECE {m["ece"]:.3f}')
-  lines.append('written: final_evaluation.json, final_evaluation.png')
-  return '\n'.join(lines)

@@ -441,13 +441,13 @@ def test_a_run_file_given_for_a_checkpoint_names_its_directory(smoke_run):
 def test_a_training_ends_with_its_short_evaluation(smoke_run):
   """config.final_eval: the run directory gets final_evaluation.json and
   .png, and the lines printed name the figures of that record."""
-  from dusty_jax import trainer
+  from dusty_jax import evaluation
   _, workdir, _ = smoke_run
   record = json.load(open(os.path.join(workdir, 'final_evaluation.json')))
   assert os.path.isfile(os.path.join(workdir, 'final_evaluation.png'))
   assert record['synthesis']['num'] == 4 and record['restoration']['num'] == 2
   assert record['ground_truth']['ring_table']['ece'] >= 0
-  text = trainer._summary(record)
+  text = evaluation.summary(record)
   assert f'MMD x1e3 {1e3 * record["synthesis"]["mmd"]:.1f}' in text
-  assert f'ECE {record["ground_truth"]["placement"]["ece"]:.3f}' in text
+  assert f'ECE {record["ground_truth"]["placement"]["ece"]:.4f}' in text
   assert "keep rate per ring" in text

@@ -86,7 +86,7 @@ def run(a):
   # answer at once.
   from dusty_jax import corrupt, evaluation, pretrained
   from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
-  from dusty_jax.metrics import ground_truth, reconstruction, records  # (as above)
+  from dusty_jax.metrics import reconstruction, records  # (as above)
 
   if bool(a.input) == bool(a.split):
     raise ValueError('give exactly one of --input and --split')
@@ -111,8 +111,7 @@ def run(a):
     names = [f'{a.split}_{i:05d}' for i in range(len(depth))]
     truth = arrays.load_ground_truth(d, a.split, sensor, len(depth))
     if truth is not None:  # the per-ring table a measurability should beat
-      ring_keep = ground_truth.ring_keep_rate(
-          arrays.load_split(d, 'train', sensor)[:evaluation.RING_TABLE_SCANS], sensor)
+      ring_keep = evaluation.training_ring_keep(d, sensor)
     subset = f'the first {a.num} scans of split {a.split!r}'
   os.makedirs(a.out, exist_ok=True)
 
@@ -138,18 +137,13 @@ def report_ground_truth(gt: dict, out: str):
   """Prints x_tilde's errors against the complete depth and the
   measurability's ECE; draws the reliability diagram."""
   # As run(): loaded once the flags are good.
-  from dusty_jax import writers
+  from dusty_jax import evaluation, writers
   from dusty_jax.metrics import reconstruction, records  # (as above)
   print(records.format_table({'x_tilde vs complete depth': gt['complete_depth']},
                              reconstruction.COLUMNS))
   print(f'measurability vs true return probability: ECE {gt["ece"]:.4f}')
-  rows = {'measurability': gt['placement']}
-  if 'ring_table' in gt:
-    rows["training split's keep rate per ring"] = gt['ring_table']
-  num = lambda v: f'{v:.3f}' if np.isfinite(v) else 'n/a'  # n/a: no pair to rank
-  for name, m in rows.items():
-    print(f'{name}: AUC of the drops on surfaces < 40 m {num(m["auc_near"])}, within rings '
-          f'{num(m["auc_near_within_ring"])}, ECE {m["ece"]:.4f}')
+  for line in evaluation.placement_lines(gt):
+    print(line)
   bins = np.arange(len(gt['reliability']['pred']))
   writers.line_plot(os.path.join(out, 'reliability.png'),
                     {'measured': (bins, gt['reliability']['truth']),
