@@ -495,3 +495,93 @@ def test_far_weight_drops_the_far_pixels(monkeypatch):
                     jax.random.key(1))
     shares[weight] = kept_far(parallel.to_host(state.g_params)) - before
   assert shares[1e3] < shares[0.0] - before / 1000, (before, shares)
+
+
+def test_ring_standardise_against_numpy_and_at_the_extremes():
+  from dusty_jax import models
+  rng = np.random.default_rng(4)
+  logit = rng.normal(3.0, 7.0, (3, 5, 64)).astype(np.float32)
+  logit[0, 1] = 2.5  # a constant ring
+  logit[1, 2] = 1e18  # an extreme one: its square overflows float32
+  logit[1, 3, ::2] = -1e18
+  got = np.asarray(models.ring_standardise(jnp.asarray(logit)))
+  assert np.isfinite(got).all()
+  x = logit.astype(np.float64)
+  want = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + models.RING_NORM_EPS)
+  normal = np.ones((3, 5), bool)
+  normal[1, 2:4] = False
+  np.testing.assert_allclose(got[normal], want[normal], rtol=1e-4, atol=1e-4)
+  assert np.all(got[0, 1] == 0)  # constant: no ranking, the ring's offset alone
+
+
+def test_ring_norm_leaves_each_ring_level_to_its_offset():
+  keep = np.linspace(0.3, 0.95, 16)
+  _, setup, state = _setup(ring_keep=keep, ring_bias=True, ring_norm=True, mask_bias=1.0)
+  p = state.g_params['params']
+  np.testing.assert_array_equal(np.asarray(p['ring_scale']), 1.0)
+  # mask_bias is standardised away: the offsets alone start at logit(keep).
+  np.testing.assert_allclose(np.asarray(p['ring_bias']), np.log(keep / (1 - keep)), rtol=1e-5)
+  # Perturbed variables: whatever the head computes, the pixel logit of
+  # each scan's ring has mean = the ring offset, spread = the ring scale.
+  q = jax.tree.map(lambda a: a + 0.3 * jax.random.normal(jax.random.key(5), a.shape),
+                   state.g_params)
+  z = jax.random.normal(jax.random.key(2), (4, setup.settings.latent_dim))
+  raw = np.asarray(setup.generator.apply(q, z), np.float64)[..., 1]
+  bias, scale = (np.asarray(q['params'][k], np.float64) for k in ('ring_bias', 'ring_scale'))
+  np.testing.assert_allclose(raw.mean(-1), np.broadcast_to(bias, (4, 16)), atol=1e-4)
+  # (the variance floor RING_NORM_EPS shrinks the spread of a quiet ring a little)
+  np.testing.assert_allclose(raw.std(-1), np.broadcast_to(np.abs(scale), (4, 16)), rtol=1e-2)
+  with pytest.raises(ValueError, match='ring_norm: needs ring_bias'):
+    dataclasses.replace(setup.settings, ring_bias=False, ring_norm=True)
+
+
+def test_control_rings_against_numpy_and_over_devices():
+  rng = np.random.default_rng(6)
+  real = (rng.uniform(size=(8, 16, 64)) > np.linspace(0.1, 0.6, 16)[:, None]).astype(np.float32)
+  fake = (rng.uniform(size=(8, 16, 64)) > 0.3).astype(np.float32)
+  fake[:, 3] = 0.0  # a ring with no returns: its logit is clipped, finitely
+  params = {'params': {'ring_bias': jnp.zeros(16), 'head_bias': jnp.ones(2)}}
+  options = drops.DropOptions(ring_bias=True, ring_control=0.2)
+  clip = lambda r: np.clip(r, drops.RING_KEEP_CLIP, 1 - drops.RING_KEEP_CLIP)
+  logit = lambda k: np.log(clip(k.mean(axis=(0, 2)))) - np.log1p(-clip(k.mean(axis=(0, 2))))
+  want = 0.2 * (logit(real.astype(np.float64)) - logit(fake.astype(np.float64)))
+  one = drops.control_rings(options, params, jnp.asarray(real), jnp.asarray(fake))
+  np.testing.assert_allclose(np.asarray(one['params']['ring_bias']), want, rtol=1e-5, atol=1e-6)
+  np.testing.assert_array_equal(np.asarray(one['params']['head_bias']), 1.0)
+  # Over 4 devices, each with a quarter of the batch: the global batch's rates.
+  split = lambda a: jnp.asarray(a.reshape(4, 2, 16, 64))
+  many = jax.pmap(lambda r, f: drops.control_rings(options, params, r, f, 'i'),
+                  axis_name='i')(split(real), split(fake))
+  np.testing.assert_allclose(np.asarray(many['params']['ring_bias']),
+                             np.broadcast_to(want, (4, 16)), rtol=1e-5, atol=1e-6)
+  assert drops.control_rings(drops.DropOptions(), params, real, fake) is params
+
+
+def test_a_ring_norm_step_holds_each_ring_at_its_real_rate():
+  c, setup, state = _setup(ring_keep=np.full(16, 0.5), ring_bias=True, ring_norm=True,
+                           ring_control=0.5)
+  mesh = parallel.data_mesh(jax.devices()[:1])
+  step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+  state = parallel.replicate(state, mesh)
+  x = np.array(_scans_and_keep(b=c.batch_size, rate=0.0)[0])
+  rng = np.random.default_rng(1)
+  x[rng.uniform(size=x.shape) > np.where(np.arange(16) < 8, 0.9, 0.1)[:, None]] = ALPHA
+  before = np.asarray(parallel.to_host(state.g_params)['params']['ring_bias'])
+  for i in range(3):
+    state, m = step(state, parallel.shard_batch(x, mesh), jax.random.key(i))
+  assert all(np.isfinite(float(v)) for v in parallel.to_host(m).values())
+  moved = np.asarray(parallel.to_host(state.g_params)['params']['ring_bias']) - before
+  assert (moved[:8] > 0.3).all() and (moved[8:] < -0.3).all()
+
+
+@pytest.mark.parametrize('field,value', [('ring_norm', True), ('ring_control', 0.2)])
+def test_the_ring_options_need_the_ring_offsets(field, value):
+  c = tiny_config()
+  c.drops[field] = value
+  with pytest.raises(configs.ConfigError, match=f'drops.{field}.*set drops.ring_bias'):
+    configs.validate(c)
+  c.drops.ring_bias = True
+  configs.validate(c)
+  a = tiny_config()
+  a.drops.ring_bias = True
+  assert ('drops' in configs.architecture_diff(a, c)) == (field == 'ring_norm')
