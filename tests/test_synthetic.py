@@ -242,3 +242,23 @@ def test_synthesize_tool(tmp_path, capsys):
     synthesize.main(['--num', '2', '--out', out, '--sensor', 'hdl'])
   with pytest.raises(SystemExit, match='--num=0'):
     synthesize.main(['--num', '0', '--out', out])
+
+
+def test_a_main_read_from_stdin_simulates_in_process(tiny, tmp_path):
+  """A spawned worker cannot import a main module read from stdin (its pool
+  would respawn failing workers for ever): such a caller gets its scans from
+  this process, and the same scans."""
+  import subprocess
+  import sys
+  code = ('import jax, numpy as np\n'  # JAX loaded: the pool would spawn
+          'from dusty_jax.data import synthetic\n'
+          'from dusty_jax.sensor import tiny_sensor\n'
+          'o, _, _ = synthetic.simulate(3, tiny_sensor(16, 64), seed=5, progress=False,'
+          ' workers=2)\n'
+          'np.save("out.npy", o)\n')
+  proc = subprocess.run([sys.executable, '-'], input=code, text=True, capture_output=True,
+                        cwd=tmp_path, timeout=300)
+  assert proc.returncode == 0, proc.stderr
+  assert 'simulating in this process' in proc.stderr
+  want, _, _ = synthetic.simulate(3, tiny, seed=5, progress=False)
+  np.testing.assert_array_equal(np.load(tmp_path / 'out.npy'), want)

@@ -33,12 +33,29 @@ def _rendered(jobs: list, workers: int):
   process that runs JAX's threads can deadlock). A spawned worker imports
   simulated_lidar (trimesh, not JAX) and the parent's main module.
   """
+  method = 'spawn' if 'jax' in sys.modules else 'fork'
+  if workers > 1 and method == 'spawn' and not _main_importable():
+    print('simulating in this process: the main module (stdin, or a string) cannot be '
+          'imported by worker processes; run a script file for parallel workers',
+          file=sys.stderr)
+    workers = 1
   if workers <= 1 or len(jobs) <= 1:
     yield map(simulated_lidar.render_arrays, jobs)
     return
-  method = 'spawn' if 'jax' in sys.modules else 'fork'
   with multiprocessing.get_context(method).Pool(workers) as pool:
     yield pool.imap(simulated_lidar.render_arrays, jobs, chunksize=_CHUNK)
+
+
+def _main_importable() -> bool:
+  """Whether a spawned worker can import the main module, as
+  multiprocessing's spawn does (by name, or from its file): a main read
+  from stdin cannot be, and such a pool respawns its failing workers for
+  ever."""
+  main = sys.modules.get('__main__')
+  if getattr(getattr(main, '__spec__', None), 'name', None):
+    return True
+  path = getattr(main, '__file__', None)
+  return path is None or os.path.isfile(path)
 
 
 def _jobs(num: int, sensor: SensorSpec, seed: int) -> list:
