@@ -169,9 +169,6 @@ def validate(c) -> None:
             f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
   need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
             'acts only on a rate term: set drops.rate_weight > 0')
-  need_drop(d.ring_control >= 0, 'ring_control', 'must be >= 0')
-  for f in ('ring_norm', 'ring_control'):
-    need_drop(not d[f] or d.ring_bias, f, 'acts on the ring offsets: set drops.ring_bias')
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('rate_weight', 0), ('far_weight', 0), ('mask_bias', 0),
                              ('ring_bias', False), ('mask_detached', False)) if d[f] != off]
@@ -230,8 +227,7 @@ def model_settings(config) -> models.ModelSettings:
   return models.ModelSettings(model=c.model, latent_dim=int(c.latent_dim),
                               ch_base=int(c.ch_base), ch_max=int(c.ch_max),
                               eqlr=c.eqlr, tau=float(c.tau),
-                              ring_bias=bool(c.drops.ring_bias),
-                              ring_norm=bool(c.drops.ring_norm))
+                              ring_bias=bool(c.drops.ring_bias))
 
 
 def architecture_diff(old, new) -> dict:
@@ -242,7 +238,7 @@ def architecture_diff(old, new) -> dict:
   for f in ARCHITECTURE:
     a, b = old.get(f), new.get(f)
     if f == 'drops':  # only these change what the networks' arrays are.
-      a, b = ((bool(o.drops.ring_bias), bool(o.drops.ring_norm)) for o in (old, new))
+      a, b = (bool(o.drops.ring_bias) for o in (old, new))
     if f == 'sensor':
       a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
               b.to_dict() if hasattr(b, 'to_dict') else b)

@@ -71,15 +71,6 @@ class DropOptions:
     rate_skip_far: the 'ring_depth' rate term leaves out its cells beyond
       FAR_M, whose high real keep rate otherwise holds far regions kept
       (far_weight's term sets those).
-    ring_norm: (with ring_bias) G's pixel measurability logit is
-      standardised per scan and ring, then scaled by a learned factor per
-      ring (models.ring_standardise), before the ring offset: the head
-      ranks a ring's pixels, the offsets set the ring's level. It changes
-      the networks, so models.ModelSettings carries it too.
-    ring_control: eta (with ring_bias): after each step every ring offset
-      moves by eta x (logit of the real batch's keep rate of that ring -
-      logit of the generated one) (:func:`control_rings`): the level per
-      ring held outside the GAN's gradient, which leaves placement to it.
   """
   mask_bias: float = 0.0
   ring_bias: bool = False
@@ -91,8 +82,6 @@ class DropOptions:
   peak_weight: float = 0.0
   far_weight: float = 0.0
   rate_skip_far: bool = False
-  ring_norm: bool = False
-  ring_control: float = 0.0
 
   @classmethod
   def from_config(cls, drops) -> 'DropOptions':
@@ -162,26 +151,8 @@ def init_biases(options: DropOptions, g_params, ring_keep=None):
   if options.mask_bias:
     g_params = set_mask_bias(g_params, options.mask_bias)
   if options.ring_bias and ring_keep is not None:
-    # ring_norm's standardisation removes the global bias: the offsets alone.
-    g_params = set_ring_bias(g_params, ring_keep, 0.0 if options.ring_norm else options.mask_bias)
+    g_params = set_ring_bias(g_params, ring_keep, options.mask_bias)
   return g_params
-
-
-def control_rings(options: DropOptions, g_params, real_keep, fake_keep, axis_name=None):
-  """``ring_control``: G's variables with each ring offset moved by eta x
-  (logit of the real keep rate - logit of the generated keep rate) of that
-  ring, both the global batch's ((B, H, W) keep-masks; not differentiated)."""
-  if not options.ring_control:
-    return g_params
-  def logit(keep):
-    n = _psum(keep.shape[0] * keep.shape[2], axis_name)
-    rate = jnp.clip(_psum(keep.sum(axis=(0, 2)), axis_name) / n,
-                    RING_KEEP_CLIP, 1 - RING_KEEP_CLIP)
-    return jnp.log(rate) - jnp.log1p(-rate)
-  gap = lax.stop_gradient(logit(real_keep) - logit(fake_keep))
-  p = g_params['params']
-  rows = p['ring_bias'] + options.ring_control * gap.astype(p['ring_bias'].dtype)
-  return {**g_params, 'params': {**p, 'ring_bias': rows}}
 
 
 # ----------------------------------------------------------------------------

@@ -110,11 +110,6 @@ class Generator(nn.Module):
   # a LiDAR's lasers each have their own sensitivity, and a conv net with
   # circular padding sees little of which row it is on.
   ring_bias: bool = False
-  # With ring_bias: the pixel measurability logit is first standardised per
-  # scan and ring (over the ring's W pixels) and scaled by a learned factor
-  # per ring, so the head places drops within a ring and the ring offsets
-  # alone set each ring's level (drops.DropOptions.ring_norm).
-  ring_norm: bool = False
 
   out_channels = property(lambda self: sum(self.head_groups))
 
@@ -145,25 +140,10 @@ class Generator(nn.Module):
     bias = self.param('head_bias', nn.initializers.zeros, (self.out_channels,))
     rows = (self.param('ring_bias', nn.initializers.zeros, (self.sensor.shape[0],))
             if self.ring_bias else None)
-    scale = (self.param('ring_scale', nn.initializers.ones, (self.sensor.shape[0],))
-             if self.ring_norm else None)
     def out(features):
       y = head(features) + bias
-      if scale is not None:
-        y = y.at[..., 1].set(ring_standardise(y[..., 1]) * scale[:, None])
       return y if rows is None else y.at[..., 1].add(rows[:, None])
     return (out(x), out(jax.lax.stop_gradient(x))) if detached_head else out(x)
-
-
-RING_NORM_EPS = 1e-4  # variance floor: a constant ring standardises to 0
-
-
-def ring_standardise(logit):
-  """(B, H, W) logits standardised per scan and ring: zero mean and unit
-  variance over each ring's W pixels (a constant ring gives 0)."""
-  mean = jnp.mean(logit, axis=-1, keepdims=True)
-  var = jnp.mean(jnp.square(logit - mean), axis=-1, keepdims=True)
-  return (logit - mean) * jax.lax.rsqrt(var + RING_NORM_EPS)
 
 
 class Discriminator(nn.Module):
@@ -315,9 +295,6 @@ class ModelSettings:
   # Beyond the paper (config drops.ring_bias): the pixel measurability logit
   # gets one learned offset per ring, i.e. per laser of the sensor.
   ring_bias: bool = False
-  # (drops.ring_norm) the pixel measurability logit standardised per scan
-  # and ring, times a learned scale per ring, before the ring offset.
-  ring_norm: bool = False
 
   def __post_init__(self):
     get_variant(self.model)
@@ -328,8 +305,6 @@ class ModelSettings:
         raise ValueError(f'{f}={v!r}: must be a whole number >= 1')
     if not self.tau > 0:
       raise ValueError(f'tau={self.tau!r}: the Gumbel temperature must be > 0')
-    if self.ring_norm and not self.ring_bias:
-      raise ValueError('ring_norm: needs ring_bias (the offsets set each ring\'s level)')
 
   @property
   def variant(self) -> Variant:
@@ -341,7 +316,7 @@ class ModelSettings:
       raise ValueError(f'ring_bias: the {self.model} model has no measurability')
     return Generator(sensor, self.variant.head_groups, self.latent_dim, self.ch_base,
                      self.ch_max, impl or layers.default_impl(), self.eqlr,
-                     self.ring_bias, self.ring_norm)
+                     self.ring_bias)
 
   def discriminator(self, sensor: SensorSpec, impl: str | None = None) -> 'Discriminator':
     check_shape(sensor)

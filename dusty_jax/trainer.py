@@ -287,7 +287,6 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
       (state.step % setup.r1_every) == 0, axis_name)
   g_params, g_opt, loss_g = g_step(setup, state.g_params, state.g_opt, d_params,
                                    fake, fake_vjp, kag, axis_name, real)
-  g_params = drops.control_rings(setup.drops, g_params, real[1], mask, axis_name)
   ema = ema_update(state.ema_params, g_params, ema_decay(setup, state.step))
   metrics = dict(d_metrics, loss_g=loss_g,
                  **drops.diagnostics(setup.sensor, fake.scan, mask, batch, axis_name))
