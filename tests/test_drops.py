@@ -2,7 +2,9 @@
 ``drops``), each against what it should compute."""
 
 import dataclasses
+import importlib.util
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -307,7 +309,17 @@ def test_the_presets_are_what_the_shipped_models_trained_with(name, model, prese
   """Each shipped model records its drops options (generator.export's
   ``training``); read as an old config (configs.upgrade: the removed
   options, off there, leave), they are its preset's."""
-  trained = pretrained.describe(name)['training']['drops']
+  training = pretrained.describe(name)['training']
+  trained = training['drops']
+  # The config it names has left experiments/; the one that trains the same:
+  assert training['config_today'] == f'experiments/study.py:{model},{preset},cpu'
+  here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  assert not os.path.exists(os.path.join(here, training['config']))
+  path, arg = training['config_today'].split(':')
+  spec = importlib.util.spec_from_file_location('study_config', os.path.join(here, path))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  assert module.get_config(arg).to_dict() == configs.study(model, preset).to_dict()
   old = configs.study(model).to_dict()
   old['drops'] = trained
   assert configs.upgrade(old).drops.to_dict() == configs.study(model, preset).drops.to_dict()
