@@ -35,7 +35,7 @@ def _rendered(jobs: list, workers: int):
   """
   method = 'spawn' if 'jax' in sys.modules else 'fork'
   if workers > 1 and method == 'spawn' and not _main_importable():
-    print('simulating in this process: the main module (stdin, or a string) cannot be '
+    print('simulating in this process: a main module read from stdin cannot be '
           'imported by worker processes; run a script file for parallel workers',
           file=sys.stderr)
     workers = 1
