@@ -14,6 +14,7 @@ from __future__ import annotations
 import difflib
 import errno
 import importlib.util
+import logging
 import os
 import pickle
 import sys
@@ -83,6 +84,10 @@ def run(fn, *args):
   except own + _STANDARD as e:
     if os.environ.get('DUSTY_JAX_TRACEBACK'):
       raise
+    # The one line below says it all: writes orbax left running when the
+    # disk filled would log their own copies when collected ("Task exception
+    # was never retrieved"), maybe after this process printed its line.
+    logging.getLogger('asyncio').setLevel(logging.CRITICAL)
     if isinstance(e, OSError) and e.errno == errno.ENOSPC:
       fail(f'no space left on device while writing {e.filename}; free space and '
            'rerun')

@@ -1,6 +1,7 @@
 """The command lines: every error a user's input causes is one line on stderr
 and a non-zero exit; Ctrl-C and a full disk say what a rerun does."""
 
+import logging
 import os
 import re
 import shutil
@@ -50,6 +51,37 @@ def test_unknown_config_field_names_the_nearest(tmp_path):
   assert _one_error_line(res, 2) == ('error: unknown config field batchsize; did you '
                                      'mean batch_size?')
   assert not (tmp_path / 'w').exists()
+
+
+def test_a_failed_command_leaves_no_async_noise_after_its_line(capsys, caplog):
+  """A user error is one line, even where the failed work left an asyncio
+  task whose exception nobody retrieved (orbax's writes on a full disk): its
+  log record, emitted when the task is collected, is dropped."""
+  import asyncio
+  import gc
+  from dusty_jax import cli, errors
+
+  def fails():
+    loop = asyncio.new_event_loop()
+
+    async def write():
+      raise OSError(28, 'No space left on device')
+    task = loop.create_task(write())
+    loop.run_until_complete(asyncio.sleep(0.01))
+    loop.close()
+    assert task.done()
+    raise errors.UserError('no space left on device while writing checkpoint 6')
+
+  level = logging.getLogger('asyncio').level
+  try:
+    with pytest.raises(cli.Exit):
+      cli.run(fails)
+    gc.collect()
+  finally:
+    logging.getLogger('asyncio').setLevel(level)
+  assert capsys.readouterr().err.strip().splitlines() == [
+      'error: no space left on device while writing checkpoint 6']
+  assert not [r for r in caplog.records if r.name == 'asyncio']
 
 
 def test_unknown_field_message():
