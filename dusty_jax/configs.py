@@ -171,7 +171,8 @@ def validate(c) -> None:
             'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
   acting = [f for f, off in (('rate_weight', 0), ('far_weight', 0), ('mask_bias', 0),
-                             ('ring_bias', False), ('mask_detached', False)) if d[f] != off]
+                             ('ring_bias', False), ('mask_detached', False),
+                             ('depth_levels', False)) if d[f] != off]
   if acting:  # the first option set names the error
     need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act on')
 

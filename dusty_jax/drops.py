@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from dusty_jax import codec
+from dusty_jax import codec, levels
 from dusty_jax.metrics import ground_truth
 from dusty_jax.sensor import SensorSpec
 
@@ -71,6 +71,10 @@ class DropOptions:
     rate_skip_far: the 'ring_depth' rate term leaves out its cells beyond
       FAR_M, whose high real keep rate otherwise holds far regions kept
       (far_weight's term sets those).
+    depth_levels: after training, the EMA generator's drop level is fitted
+      per (ring, depth) cell to the training split (levels.calibrate) and
+      kept in the run (levels.FILE), which loading it applies. Training
+      itself is unchanged.
   """
   mask_bias: float = 0.0
   ring_bias: bool = False
@@ -82,6 +86,7 @@ class DropOptions:
   peak_weight: float = 0.0
   far_weight: float = 0.0
   rate_skip_far: bool = False
+  depth_levels: bool = False
 
   @classmethod
   def from_config(cls, drops) -> 'DropOptions':
@@ -97,11 +102,13 @@ class DropOptions:
 RATE_BY = ('image', 'ring', 'ring_depth')
 
 # The options the shipped models trained with (configs.study's presets):
-# 'authors' is the paper's training; 'dips' trained sim-dusty2, 'far'
-# sim-dusty1 (benchmarks/research/drops/lineage.py: how they were reached).
-DIPS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_by='ring_depth',
-            rate_head_only=True, mask_detached=True, dip_weight=10.0)
-FAR = dict(DIPS, peak_weight=10.0, far_weight=100.0, rate_skip_far=True)
+# 'authors' is the paper's training; 'dips' trained sim-dusty2 (its drop
+# levels fitted after training), 'far' sim-dusty1
+# (benchmarks/research/drops/lineage.py: how they were reached).
+_DIP_TERMS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_by='ring_depth',
+                  rate_head_only=True, mask_detached=True, dip_weight=10.0)
+DIPS = dict(_DIP_TERMS, depth_levels=True)
+FAR = dict(_DIP_TERMS, peak_weight=10.0, far_weight=100.0, rate_skip_far=True)
 PRESETS = {'authors': {}, 'dips': DIPS, 'far': FAR}
 
 
@@ -288,47 +295,9 @@ def far_penalty(sensor: SensorSpec, keep, inv_depth, real, axis_name=None):
   return jnp.mean(jnp.square(fake - target))
 
 
-# Metric depth edges (m) of the ``rate_by='ring_depth'`` cells.
-RATE_DEPTH_EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
-RATE_DEPTH_BINS = len(RATE_DEPTH_EDGES) + 2  # bin 0 (no returned neighbour) and the ranges
-NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
-
-
-def neighbour_depth_bin(scan, keep, sensor: SensorSpec, edges=RATE_DEPTH_EDGES):
-  """(B, H, W) int: each pixel's depth bin, judged from its neighbours.
-
-  The mean normalised inverse depth of the returned pixels (``keep``) in a
-  (3, 5) window around each pixel, the pixel itself left out (columns wrap
-  around, rows do not), binned by the metric ``edges``: bin 0 when no
-  neighbour returned, then 1 (nearer than edges[0]) to len(edges) + 1
-  (beyond edges[-1]). Leaving the pixel out makes the bin of a drop and of a
-  return alike, so real scans, whose dropped depth is unknown, and
-  generated ones are binned the same way.
-  """
-  keep = keep.astype(jnp.float32)
-  x = jnp.where(keep > 0, scan, 0.0)
-  (dh, dw), h = NEIGHBOURS, scan.shape[1]
-  pad = lambda a: jnp.pad(a, ((0, 0), (dh, dh), (0, 0)))
-  xs, ks = pad(x), pad(keep)
-  total, count = jnp.zeros_like(x), jnp.zeros_like(x)
-  for i in range(2 * dh + 1):
-    for j in range(-dw, dw + 1):
-      if (i, j) == (dh, 0):
-        continue
-      total += jnp.roll(xs[:, i:i + h], j, axis=2)
-      count += jnp.roll(ks[:, i:i + h], j, axis=2)
-  mean = total / jnp.maximum(count, 1.0)
-  # Depth beyond an edge <=> inverse depth at or below its code.
-  codes = codec.encode(jnp.asarray(edges, jnp.float32), sensor)
-  far = jnp.sum(mean[..., None] <= codes, axis=-1)
-  return jnp.where(count > 0, 1 + far, 0)
-
-
-def ring_depth_cells(scan, keep, sensor: SensorSpec):
-  """(B, H, W) int: each pixel's (ring, depth bin) cell, ring * RATE_DEPTH_BINS
-  + neighbour_depth_bin; cells run over [0, H * RATE_DEPTH_BINS)."""
-  bins = neighbour_depth_bin(scan, keep, sensor)
-  return jnp.arange(scan.shape[1])[None, :, None] * RATE_DEPTH_BINS + bins
+# The ``rate_by='ring_depth'`` cells are levels.py's (ring, neighbours' depth bin).
+RATE_DEPTH_EDGES, RATE_DEPTH_BINS = levels.EDGES, levels.BINS
+neighbour_depth_bin, ring_depth_cells = levels.neighbour_depth_bin, levels.cells
 
 
 def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int, axis_name=None,

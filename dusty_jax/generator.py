@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct, traverse_util
 
-from dusty_jax import checkpoint, configs, encoder as encoder_lib
+from dusty_jax import checkpoint, configs, encoder as encoder_lib, levels
 from dusty_jax.data import arrays
 from dusty_jax.models import ModelSettings
 from dusty_jax.sensor import SensorSpec, check_angles, from_config as sensor_from_config
@@ -202,12 +202,20 @@ def load(path: str, step: int | None = None, ema: bool = True,
   sensor, settings, tolerance = read_spec(path)
   table = read_angles(path, sensor, angles)
   name = 'ema_params' if ema else 'g_params'
-  variables, _ = checkpoint.restore_item(os.path.join(path, checkpoint.DIRECTORY),
-                                         name, step,
-                                         log=log or (lambda m: print(m, file=sys.stderr)))
+  log = log or (lambda m: print(m, file=sys.stderr))
+  variables, restored = checkpoint.restore_item(os.path.join(path, checkpoint.DIRECTORY),
+                                                name, step, log=log)
   params = GeneratorParams(variables=variables, angles=jnp.asarray(table, jnp.float32),
                            sensor=sensor, settings=settings, tolerance=tolerance)
   check(params, path)
+  fitted = levels.load(path)  # the drop levels fitted after training, if any
+  if fitted is not None and ema:
+    if fitted[1] == restored:
+      params = levels.with_levels(params, fitted[0])
+      check(params, path)
+    else:
+      log(f'{os.path.join(path, levels.FILE)} fits step {fitted[1]}; step {restored} is '
+          'loaded without those drop levels')
   enc_path = os.path.join(path, encoder_lib.FILE)
   if os.path.isfile(enc_path):
     enc, enc_settings, _ = encoder_lib.load(enc_path)

@@ -38,7 +38,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from dusty_jax import gumbel, layers
+from dusty_jax import gumbel, layers, levels as levels_lib
 from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import SensorSpec
 
@@ -110,6 +110,9 @@ class Generator(nn.Module):
   # a LiDAR's lasers each have their own sensitivity, and a conv net with
   # circular padding sees little of which row it is on.
   ring_bias: bool = False
+  # One logit offset per (ring, depth) cell of x_tilde, fitted after training
+  # (levels.py): how many pixels drop at each range of each laser.
+  depth_levels: bool = False
 
   out_channels = property(lambda self: sum(self.head_groups))
 
@@ -138,11 +141,18 @@ class Generator(nn.Module):
     head = EqualConv(self.out_channels, up=True, impl=self.impl, eqlr=self.eqlr,
                      groups=self.head_groups, name='head')
     bias = self.param('head_bias', nn.initializers.zeros, (self.out_channels,))
-    rows = (self.param('ring_bias', nn.initializers.zeros, (self.sensor.shape[0],))
-            if self.ring_bias else None)
+    h = self.sensor.shape[0]
+    rows = self.param('ring_bias', nn.initializers.zeros, (h,)) if self.ring_bias else None
+    cells = (self.param('depth_levels', nn.initializers.zeros, (h, levels_lib.BINS))
+             if self.depth_levels else None)
     def out(features):
       y = head(features) + bias
-      return y if rows is None else y.at[..., 1].add(rows[:, None])
+      if rows is not None:
+        y = y.at[..., 1].add(rows[:, None])
+      if cells is not None:  # x_tilde as Variant.decode_inv_depth makes it
+        index = levels_lib.of_x_tilde(jnp.tanh(y[..., 0]), self.sensor)
+        y = y.at[..., 1].add(cells.reshape(-1)[index])
+      return y
     return (out(x), out(jax.lax.stop_gradient(x))) if detached_head else out(x)
 
 
@@ -295,6 +305,8 @@ class ModelSettings:
   # Beyond the paper (config drops.ring_bias): the pixel measurability logit
   # gets one learned offset per ring, i.e. per laser of the sensor.
   ring_bias: bool = False
+  # After training (levels.py): one offset per (ring, depth) cell of x_tilde.
+  depth_levels: bool = False
 
   def __post_init__(self):
     get_variant(self.model)
@@ -312,11 +324,12 @@ class ModelSettings:
 
   def generator(self, sensor: SensorSpec, impl: str | None = None) -> Generator:
     check_shape(sensor)
-    if self.ring_bias and not self.variant.has_measurability:
-      raise ValueError(f'ring_bias: the {self.model} model has no measurability')
+    for f in ('ring_bias', 'depth_levels'):
+      if getattr(self, f) and not self.variant.has_measurability:
+        raise ValueError(f'{f}: the {self.model} model has no measurability')
     return Generator(sensor, self.variant.head_groups, self.latent_dim, self.ch_base,
                      self.ch_max, impl or layers.default_impl(), self.eqlr,
-                     self.ring_bias)
+                     self.ring_bias, self.depth_levels)
 
   def discriminator(self, sensor: SensorSpec, impl: str | None = None) -> 'Discriminator':
     check_shape(sensor)

@@ -35,7 +35,7 @@ import tqdm
 from jax import lax
 
 from dusty_jax import (augment, checkpoint, codec, configs, drops, errors, evaluation, generator,
-                       losses, models, parallel, sampling, writers)
+                       levels, losses, models, parallel, sampling, writers)
 from dusty_jax import sensor as sensor_lib
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.parallel import AXIS
@@ -539,6 +539,15 @@ def _train(config, workdir: str, log, watch) -> TrainState:
       # A second failure (the disk that failed a checkpoint also fails the
       # metrics) must not replace the one already on its way.
       writer.close(quiet=not finished)
+  final = None  # the EMA generator as loading the run gives it
+  if setup.drops.depth_levels:
+    # Every process fits the same levels (same samples, same scans); one writes.
+    final = levels.calibrate(generator_params(setup, parallel.to_host(state.ema_params), angles),
+                             depth[:evaluation.RING_TABLE_SCANS])
+    if is_main:
+      levels.save(workdir, final.variables['params']['depth_levels'], done)
+      log(f'drop levels per (ring, depth) cell fitted to the training split: '
+          f'{levels.FILE} (applied when step {done} is loaded)')
   fe = config.final_eval
   if (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
       os.path.join(workdir, evaluation.AFTER_TRAINING + '.json')):
@@ -548,8 +557,9 @@ def _train(config, workdir: str, log, watch) -> TrainState:
             f'--workdir {workdir}')
     elif is_main:
       log('short evaluation on the test split (config final_eval)')
-      ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
+      if final is None:
+        final = generator_params(setup, parallel.to_host(state.ema_params), angles)
       log(evaluation.summary(evaluation.after_training(
-          ema, data_dir, workdir, num_synthesis=fe.num_synthesis, points=fe.points,
+          final, data_dir, workdir, num_synthesis=fe.num_synthesis, points=fe.points,
           num_invert=fe.num_invert, invert_steps=fe.invert_steps)))
   return state

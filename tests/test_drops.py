@@ -50,40 +50,6 @@ def test_rate_penalty_against_numpy(rate_by):
       keep, r, rate_by))(real)).max()) == 0.0
 
 
-def _neighbour_bins_loop(x, keep, sensor, edges):
-  """neighbour_depth_bin by explicit loops over pixels and their window."""
-  b, h, w = x.shape
-  codes = np.asarray([float(codec.encode(np.float32(e), sensor)) for e in edges])
-  out = np.zeros((b, h, w), np.int64)
-  for n in range(b):
-    for r in range(h):
-      for c in range(w):
-        vals = [x[n, rr, cc % w] for rr in range(r - 1, r + 2) for cc in range(c - 2, c + 3)
-                if 0 <= rr < h and (rr, cc) != (r, c) and keep[n, rr, cc % w]]
-        out[n, r, c] = 0 if not vals else 1 + int(np.sum(np.mean(vals) <= codes))
-  return out
-
-
-def test_neighbour_depth_bin_against_loops():
-  sensor = tiny_sensor(6, 12)
-  rng = np.random.default_rng(5)
-  # Depth grows along the ring (2 to 80 m), so every bin is reached.
-  depth = (np.geomspace(2.0, 80.0, 12) * rng.uniform(0.9, 1.1, (3, 6, 12))).astype(np.float32)
-  keep = rng.uniform(size=depth.shape) > 0.4
-  keep[0, :3] = False  # a pixel whose neighbours all dropped: bin 0
-  x = np.where(keep, np.asarray(codec.encode(depth, sensor)), ALPHA).astype(np.float32)
-  edges = (5.0, 20.0, 40.0)
-  got = np.asarray(drops.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(keep), sensor, edges))
-  want = _neighbour_bins_loop(x, keep, sensor, edges)
-  np.testing.assert_array_equal(got, want)
-  assert (want == 0).any() and len(np.unique(want)) == len(edges) + 2
-  # The pixel itself never counts: flipping it leaves its own bin unchanged.
-  flipped = keep.copy()
-  flipped[1, 3, 5] = ~flipped[1, 3, 5]
-  again = drops.neighbour_depth_bin(jnp.asarray(x), jnp.asarray(flipped), sensor, edges)
-  assert int(again[1, 3, 5]) == int(got[1, 3, 5])
-
-
 def test_cell_rate_penalty_against_numpy():
   rng = np.random.default_rng(6)
   keep = rng.uniform(size=(4, 5, 7)).astype(np.float32)

@@ -1,0 +1,193 @@
+"""Drop levels per (ring, depth) cell, fitted to a trained generator.
+
+A DUSty generator's measurability says which pixels drop; how many drop in
+each part of a scan is its level. A LiDAR's keep rate depends on the laser
+(the ring) and on the range of what it sees, so a cell here is a pixel's
+(ring, depth bin), the bin judged from the mean depth of the pixel's
+neighbours, itself left out (:func:`neighbour_depth_bin`): a drop and a
+return are binned alike, so real scans, whose dropped depth is unknown, and
+generated ones are binned the same way.
+
+:func:`calibrate` fits, after training, one logit offset per cell to the
+generator's measurability, so that its samples keep in each cell the share of
+pixels the training data keeps there (:func:`keep_rate`), the generator's
+x_tilde deciding the cells. The measurability still ranks the pixels within
+a cell. The offsets are the generator's ``depth_levels`` variable
+(models.ModelSettings.depth_levels); a run directory keeps them in
+:data:`FILE` (generator.load applies them).
+benchmarks/research/drops/README.md ("Placement: levels per (ring, depth)
+cell") measures what they change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dusty_jax import codec
+from dusty_jax.sensor import SensorSpec
+
+EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)  # metres between depth bins
+BINS = len(EDGES) + 2  # bin 0 (no returned neighbour), then nearer than EDGES[0], ...
+NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
+PSEUDO_COUNT = 20.0  # pixels of its ring's rate that a cell's real rate starts from
+MIN_PIXELS = 50  # generated pixels a cell needs to get an offset of its own
+FILE = 'depth_levels.npz'
+
+
+def neighbour_depth_bin(scan, keep, sensor: SensorSpec, edges=EDGES):
+  """(B, H, W) int: each pixel's depth bin, judged from its neighbours.
+
+  The mean normalised inverse depth of the returned pixels (``keep``) in a
+  (3, 5) window around each pixel, the pixel itself left out (columns wrap
+  around, rows do not), binned by the metric ``edges``: bin 0 when no
+  neighbour returned, then 1 (nearer than edges[0]) to len(edges) + 1
+  (beyond edges[-1]).
+  """
+  keep = keep.astype(jnp.float32)
+  x = jnp.where(keep > 0, scan, 0.0)
+  (dh, dw), h = NEIGHBOURS, scan.shape[1]
+  pad = lambda a: jnp.pad(a, ((0, 0), (dh, dh), (0, 0)))
+  xs, ks = pad(x), pad(keep)
+  total, count = jnp.zeros_like(x), jnp.zeros_like(x)
+  for i in range(2 * dh + 1):
+    for j in range(-dw, dw + 1):
+      if (i, j) == (dh, 0):
+        continue
+      total += jnp.roll(xs[:, i:i + h], j, axis=2)
+      count += jnp.roll(ks[:, i:i + h], j, axis=2)
+  mean = total / jnp.maximum(count, 1.0)
+  # Depth beyond an edge <=> inverse depth at or below its code.
+  codes = codec.encode(jnp.asarray(edges, jnp.float32), sensor)
+  far = jnp.sum(mean[..., None] <= codes, axis=-1)
+  return jnp.where(count > 0, 1 + far, 0)
+
+
+def cells(scan, keep, sensor: SensorSpec):
+  """(B, H, W) int: each pixel's cell, ring * BINS + neighbour_depth_bin;
+  cells run over [0, H * BINS)."""
+  bins = neighbour_depth_bin(scan, keep, sensor)
+  return jnp.arange(scan.shape[1])[None, :, None] * BINS + bins
+
+
+def of_x_tilde(x_tilde, sensor: SensorSpec):
+  """The cells of a generated complete inverse depth (its pixels beyond
+  ALPHA count as returns); not differentiated."""
+  x = jax.lax.stop_gradient(x_tilde)
+  return cells(x, x > codec.ALPHA, sensor)
+
+
+_cells_of_scans = jax.jit(lambda x, sensor: cells(x, x > codec.ALPHA, sensor),
+                          static_argnums=1)
+
+
+def keep_rate(depth, sensor: SensorSpec, batch: int = 64):
+  """(table (H, BINS), ring (H,)): the share of pixels that returned a point
+  in each cell and in each ring of the metric depth scans ``depth`` (N, H,
+  W; 0 or out of range: dropped), each cell's rate pulled towards its ring's
+  by PSEUDO_COUNT pixels (a cell few pixels fall in gets about its ring's)."""
+  depth = np.asarray(depth, np.float32)
+  if not len(depth):
+    raise ValueError('keep_rate: no scans to count returns in')
+  h = depth.shape[1]
+  kept, seen = np.zeros(h * BINS), np.zeros(h * BINS)
+  for i in range(0, len(depth), batch):
+    d = depth[i:i + batch]
+    keep = np.asarray(codec.valid_depth(d, sensor), np.float64).ravel()
+    index = np.asarray(_cells_of_scans(codec.encode(d, sensor), sensor)).ravel()
+    kept += np.bincount(index, keep, minlength=h * BINS)
+    seen += np.bincount(index, minlength=h * BINS)
+  ring = kept.reshape(h, BINS).sum(1) / seen.reshape(h, BINS).sum(1)
+  table = (kept + PSEUDO_COUNT * np.repeat(ring, BINS)) / (seen + PSEUDO_COUNT)
+  return table.reshape(h, BINS), ring
+
+
+def _bisect(keep, target, iterations: int):
+  """Offsets o (one per entry of ``target``) with keep(o) = target, for a
+  ``keep`` that rises with each offset."""
+  target = np.clip(np.asarray(target, np.float64), 1e-4, 1 - 1e-4)
+  lo, hi = np.full(target.shape, -30.0), np.full(target.shape, 30.0)
+  for _ in range(iterations):
+    mid = (lo + hi) / 2
+    low = np.asarray(keep(jnp.asarray(mid, jnp.float32))) < target
+    lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
+  return (lo + hi) / 2
+
+
+def calibrate(params, depth, num: int = 256, seed: int = 0, iterations: int = 40):
+  """``params`` (a generator.GeneratorParams with a measurability) with its
+  drop level fitted to the metric depth scans ``depth`` (the training split).
+
+  Over ``num`` samples, ``depth_levels`` offsets (added to those it has) are
+  set by bisection so that each cell's expected keep rate (measurability
+  times x_tilde beyond ALPHA) equals the scans' (:func:`keep_rate`), then
+  moved by one offset per ring so that each ring's equals the scans' too: a
+  generated x_tilde is complete where a real scan's drops cluster, so its
+  cells hold more near surfaces than the real ones do. A cell fewer than
+  MIN_PIXELS generated pixels fall in takes its ring's mean offset.
+  """
+  variant = params.variant
+  if not variant.has_measurability:
+    raise ValueError(f'calibrate: the {params.model} model has no measurability to level')
+  table, ring_rate = keep_rate(depth, params.sensor)
+  h = params.sensor.shape[0]
+  if table.shape[0] != h:
+    raise ValueError(f'calibrate: the scans have {table.shape[0]} rings; the generator {h}')
+  apply = jax.jit(params.module().apply)
+  key, raw = jax.random.key(seed), []
+  for i in range(0, num, 64):
+    z = jax.random.normal(jax.random.fold_in(key, i), (min(64, num - i), params.latent_dim))
+    raw.append(apply(params.variables, z))
+  raw = jnp.concatenate(raw)
+  x = variant.decode_inv_depth(raw)
+  index = of_x_tilde(x, params.sensor)
+  count = np.bincount(np.asarray(index).ravel(), minlength=h * BINS)
+  rows = jnp.broadcast_to(jnp.arange(h)[None, :, None], x.shape)
+
+  def keep_of(offset):  # the expected keep of each pixel with the cells moved
+    moved = raw.at[..., 1].add(offset[index])
+    return variant.measurability(variant.logit(moved)) * (x > codec.ALPHA)
+  per_cell = jax.jit(lambda o: jax.ops.segment_sum(keep_of(o).ravel(), index.ravel(),
+                                                   h * BINS) / jnp.maximum(count, 1))
+  offset = _bisect(per_cell, table.ravel(), iterations).reshape(h, BINS)
+  fitted = (count >= MIN_PIXELS).reshape(h, BINS)
+  weight = np.where(fitted, count.reshape(h, BINS), 0)
+  mean = (offset * weight).sum(1) / np.maximum(weight.sum(1), 1)
+  offset = jnp.asarray(np.where(fitted, offset, mean[:, None]).ravel(), jnp.float32)
+  per_ring = jax.jit(lambda r: jnp.mean(keep_of(offset + jnp.repeat(r, BINS)), axis=(0, 2)))
+  ring = _bisect(per_ring, ring_rate, iterations)
+  return with_levels(params, np.asarray(offset).reshape(h, BINS) + ring[:, None])
+
+
+def with_levels(params, offset):
+  """``params`` whose ``depth_levels`` are theirs plus ``offset`` (H, BINS)."""
+  p = dict(params.variables['params'])
+  old = np.asarray(p.get('depth_levels', 0.0), np.float64)
+  p['depth_levels'] = jnp.asarray(old + np.asarray(offset, np.float64), jnp.float32)
+  settings = dataclasses.replace(params.settings, depth_levels=True)
+  return params.replace(variables={**params.variables, 'params': p}, settings=settings)
+
+
+def save(workdir: str, levels, step: int):
+  """Writes a run's fitted levels (H, BINS) and the step they fit (atomically)."""
+  path = os.path.join(workdir, FILE)
+  with open(path + '.tmp', 'wb') as f:
+    np.savez(f, levels=np.asarray(levels, np.float32), step=np.int64(step))
+  os.replace(path + '.tmp', path)
+
+
+def load(workdir: str):
+  """(levels, step) a run keeps in FILE, or None where it has none."""
+  path = os.path.join(workdir, FILE)
+  if not os.path.isfile(path):
+    return None
+  try:
+    with np.load(path, allow_pickle=False) as f:
+      return np.asarray(f['levels'], np.float32), int(f['step'])
+  except (OSError, ValueError, KeyError) as e:
+    raise ValueError(f'{path}: not a file of drop levels ({e}); delete it and fit them '
+                     'again (dusty_jax.levels.calibrate)') from None
