@@ -106,13 +106,18 @@ def main(argv=None):
   with open(os.path.join(a.data_dir, 'meta.json')) as f:
     sensor = get_sensor(json.load(f)['sensor'])
   split = np.asarray(arrays.load_split(a.data_dir, a.split, sensor))
-  depth, complete, prob = (np.asarray(arrays.load_split(a.data_dir, a.split, sensor, k)[:a.num])
+  depth, complete, prob = (np.asarray(arrays.load_split(a.data_dir, a.split, sensor, k)
+                                      [:max(a.num, a.picture)])
                            for k in ('', 'complete', 'drop_prob'))
   ring_keep = evaluation.training_ring_keep(a.data_dir, sensor)
-  table = ground_truth.ring_table_scores(sensor, ring_keep, depth, complete, prob)
-  table.pop('reliability')
-  print(f'per-ring table: AUC<40 {table["auc_near"]:.3f} within '
-        f'{table["auc_near_within_ring"]:.3f}', flush=True)
+  if a.num:
+    depth, complete, prob, shown_depth = depth[:a.num], complete[:a.num], prob[:a.num], depth
+    table = ground_truth.ring_table_scores(sensor, ring_keep, depth, complete, prob)
+    table.pop('reliability')
+    print(f'per-ring table: AUC<40 {table["auc_near"]:.3f} within '
+          f'{table["auc_near_within_ring"]:.3f}', flush=True)
+  else:
+    shown_depth = depth
   train = np.asarray(arrays.load_split(a.data_dir, 'train', sensor)[:evaluation.RING_TABLE_SCANS])
   make = {'as shipped': lambda p: p,
           'without levels': lambda p: (levels.with_levels(p, -p.variables['params']['depth_levels'])
@@ -125,7 +130,7 @@ def main(argv=None):
     for form in a.forms.split(','):
       model = make[form](params)
       if a.picture:
-        shown[f'{name} ({form})'] = picture_rows(model, depth[:a.picture], a.steps)
+        shown[f'{name} ({form})'] = picture_rows(model, shown_depth[:a.picture], a.steps)
       if not a.num:
         continue
       r = placement_curve.score(model, depth, (complete, prob), ring_keep, a.steps)
@@ -139,7 +144,8 @@ def main(argv=None):
             f'{100 * s["jsd"]:.1f} MMD x1e3 {1e3 * s["mmd"]:.2f} 1-NNA '
             f'{100 * s["1nna"]:.1f} COV {100 * s["cov"]:.1f}', flush=True)
   if shown:
-    draw(shown, depth[:a.picture], prob[:a.picture], sensor,
+    truth = np.asarray(arrays.load_split(a.data_dir, a.split, sensor, 'drop_prob')[:a.picture])
+    draw(shown, shown_depth[:a.picture], truth, sensor,
          os.path.join(a.out, f'{a.name}.png'))
   if not a.num:
     return
