@@ -72,7 +72,8 @@ class DropOptions:
       FAR_M, whose high real keep rate otherwise holds far regions kept
       (far_weight's term sets those).
     depth_levels: after training, the EMA generator's drop level is fitted
-      per (ring, depth) cell to the training split (levels.calibrate) and
+      per (ring, depth) cell to the training split's first 1,024 scans
+      (levels.calibrate) and
       kept in the run (levels.FILE), which loading it applies. Training
       itself is unchanged.
   """

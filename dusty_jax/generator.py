@@ -8,7 +8,8 @@ tolerance as static metadata. It is what ``sample``, ``generate`` and
 On disk, two forms, both read without the trainer, the discriminator, the
 optimiser states or the data pipeline:
   * a training run directory: ``generator.json`` (sensor, model settings,
-    tolerance) and ``angles.npy``, written when training starts, plus the
+    tolerance) and ``angles.npy``, written when training starts, the drop
+    levels fitted after it where it fitted them (levels.FILE), plus the
     generator's variables inside the run's orbax checkpoints (only they are
     read); runs older than ``generator.json`` are described by their
     ``config.json``;
@@ -168,8 +169,9 @@ def load(path: str, step: int | None = None, ema: bool = True,
   ``angles``: a (2, H, W) ``.npy`` table (or the authors' angles.pt, or
   'nominal') in place of the one the run or file holds (runs from before
   runs kept one need it). Nothing is written, simulated or read from a
-  dataset. ``log`` (default: stderr) gets a warning per damaged checkpoint
-  skipped, then the step loaded.
+  dataset. A run's ``depth_levels.npz`` (levels.py) is applied to the EMA
+  generator of the step it fits. ``log`` (default: stderr) gets a warning
+  per damaged checkpoint skipped, then the step loaded.
   """
   # The shipped models' folder (pretrained/ imports this module: read it as files).
   shipped = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'pretrained')
@@ -208,11 +210,10 @@ def load(path: str, step: int | None = None, ema: bool = True,
   params = GeneratorParams(variables=variables, angles=jnp.asarray(table, jnp.float32),
                            sensor=sensor, settings=settings, tolerance=tolerance)
   check(params, path)
-  fitted = levels.load(path)  # the drop levels fitted after training, if any
-  if fitted is not None and ema:
+  fitted = levels.load(path) if ema else None  # the EMA's drop levels (levels.py)
+  if fitted is not None:
     if fitted[1] == restored:
-      params = levels.with_levels(params, fitted[0])
-      check(params, path)
+      params = levels.with_levels(params, fitted[0], os.path.join(path, levels.FILE))
     else:
       log(f'{os.path.join(path, levels.FILE)} fits step {fitted[1]}; step {restored} is '
           'loaded without those drop levels')

@@ -3,8 +3,8 @@
 A DUSty generator's measurability says which pixels drop; how many drop in
 each part of a scan is its level. A LiDAR's keep rate depends on the laser
 (the ring) and on the range of what it sees, so a cell here is a pixel's
-(ring, depth bin), the bin judged from the mean depth of the pixel's
-neighbours, itself left out (:func:`neighbour_depth_bin`): a drop and a
+(ring, depth bin), the bin judged from the mean (normalised inverse) depth
+of the pixel's returned neighbours, itself left out (:func:`neighbour_depth_bin`): a drop and a
 return are binned alike, so real scans, whose dropped depth is unknown, and
 generated ones are binned the same way.
 
@@ -15,8 +15,8 @@ x_tilde deciding the cells. The measurability still ranks the pixels within
 a cell. The offsets are the generator's ``depth_levels`` variable
 (models.ModelSettings.depth_levels); a run directory keeps them in
 :data:`FILE` (generator.load applies them).
-benchmarks/research/drops/README.md ("Placement: levels per (ring, depth)
-cell") measures what they change.
+benchmarks/research/drops/README.md ("Placement: drop levels per (ring,
+depth) cell") measures what they change.
 """
 
 from __future__ import annotations
@@ -118,17 +118,19 @@ def _bisect(keep, target, iterations: int):
   return (lo + hi) / 2
 
 
-def calibrate(params, depth, num: int = 256, seed: int = 0, iterations: int = 40):
+def calibrate(params, depth, num: int = 256, seed: int = 0, iterations: int = 40,
+              rings: bool = True):
   """``params`` (a generator.GeneratorParams with a measurability) with its
   drop level fitted to the metric depth scans ``depth`` (the training split).
 
   Over ``num`` samples, ``depth_levels`` offsets (added to those it has) are
   set by bisection so that each cell's expected keep rate (measurability
   times x_tilde beyond ALPHA) equals the scans' (:func:`keep_rate`), then
-  moved by one offset per ring so that each ring's equals the scans' too: a
-  generated x_tilde is complete where a real scan's drops cluster, so its
-  cells hold more near surfaces than the real ones do. A cell fewer than
-  MIN_PIXELS generated pixels fall in takes its ring's mean offset.
+  moved by one offset per ring so that each ring's equals the scans' too
+  (``rings``): a generated x_tilde is complete where a real scan's drops
+  cluster, so its cells hold more near surfaces than the real ones do. A
+  cell with fewer than MIN_PIXELS generated returns (x_tilde beyond ALPHA)
+  takes its ring's mean offset.
   """
   variant = params.variant
   if not variant.has_measurability:
@@ -146,7 +148,8 @@ def calibrate(params, depth, num: int = 256, seed: int = 0, iterations: int = 40
   x = variant.decode_inv_depth(raw)
   index = of_x_tilde(x, params.sensor)
   count = np.bincount(np.asarray(index).ravel(), minlength=h * BINS)
-  rows = jnp.broadcast_to(jnp.arange(h)[None, :, None], x.shape)
+  returns = np.bincount(np.asarray(index).ravel(), np.asarray(x > codec.ALPHA).ravel(),
+                        minlength=h * BINS)
 
   def keep_of(offset):  # the expected keep of each pixel with the cells moved
     moved = raw.at[..., 1].add(offset[index])
@@ -154,17 +157,23 @@ def calibrate(params, depth, num: int = 256, seed: int = 0, iterations: int = 40
   per_cell = jax.jit(lambda o: jax.ops.segment_sum(keep_of(o).ravel(), index.ravel(),
                                                    h * BINS) / jnp.maximum(count, 1))
   offset = _bisect(per_cell, table.ravel(), iterations).reshape(h, BINS)
-  fitted = (count >= MIN_PIXELS).reshape(h, BINS)
-  weight = np.where(fitted, count.reshape(h, BINS), 0)
+  fitted = (returns >= MIN_PIXELS).reshape(h, BINS)
+  weight = np.where(fitted, returns.reshape(h, BINS), 0)
   mean = (offset * weight).sum(1) / np.maximum(weight.sum(1), 1)
   offset = jnp.asarray(np.where(fitted, offset, mean[:, None]).ravel(), jnp.float32)
-  per_ring = jax.jit(lambda r: jnp.mean(keep_of(offset + jnp.repeat(r, BINS)), axis=(0, 2)))
-  ring = _bisect(per_ring, ring_rate, iterations)
+  ring = np.zeros(h)
+  if rings:
+    per_ring = jax.jit(lambda r: jnp.mean(keep_of(offset + jnp.repeat(r, BINS)), axis=(0, 2)))
+    ring = _bisect(per_ring, ring_rate, iterations)
   return with_levels(params, np.asarray(offset).reshape(h, BINS) + ring[:, None])
 
 
-def with_levels(params, offset):
-  """``params`` whose ``depth_levels`` are theirs plus ``offset`` (H, BINS)."""
+def with_levels(params, offset, source: str = 'depth levels'):
+  """``params`` whose ``depth_levels`` are theirs plus ``offset`` (H, BINS);
+  ``source`` names the offsets in the error for another shape."""
+  want = (params.sensor.shape[0], BINS)
+  if np.shape(offset) != want:
+    raise ValueError(f'{source}: levels of shape {np.shape(offset)}; this generator\'s are {want}')
   p = dict(params.variables['params'])
   old = np.asarray(p.get('depth_levels', 0.0), np.float64)
   p['depth_levels'] = jnp.asarray(old + np.asarray(offset, np.float64), jnp.float32)

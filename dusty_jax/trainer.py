@@ -320,11 +320,20 @@ def generator_params(setup: Setup, variables, angles, tolerance=0.0):
 def init_run(workdir: str, config, params) -> None:
   """Starts a run directory from given generator weights (e.g. the authors'):
   config, generator description and a step-0 checkpoint whose G and EMA
-  hold ``params.variables`` and whose D and optimisers are fresh."""
+  hold ``params.variables`` and whose D and optimisers are fresh. Drop
+  levels fitted after training (levels.py) go to the run's levels file, at
+  step 0, not into the trained weights."""
   setup = make_setup(config, params.sensor)
   state = init_state(setup, jax.random.key(config.seed))
-  state = state.replace(g_params=params.variables, ema_params=params.variables)
+  variables, fitted = params.variables, None
+  if params.settings.depth_levels:
+    fitted = variables['params']['depth_levels']
+    variables = {**variables, 'params': {k: v for k, v in variables['params'].items()
+                                         if k != 'depth_levels'}}
+  state = state.replace(g_params=variables, ema_params=variables)
   configs.save(workdir, config)
+  if fitted is not None:
+    levels.save(workdir, fitted, 0)
   generator.save_spec(workdir, params.sensor, setup.settings, params.angles,
                       params.tolerance)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
@@ -541,13 +550,17 @@ def _train(config, workdir: str, log, watch) -> TrainState:
       writer.close(quiet=not finished)
   final = None  # the EMA generator as loading the run gives it
   if setup.drops.depth_levels:
-    # Every process fits the same levels (same samples, same scans); one writes.
-    final = levels.calibrate(generator_params(setup, parallel.to_host(state.ema_params), angles),
-                             depth[:evaluation.RING_TABLE_SCANS])
-    if is_main:
-      levels.save(workdir, final.variables['params']['depth_levels'], done)
-      log(f'drop levels per (ring, depth) cell fitted to the training split: '
-          f'{levels.FILE} (applied when step {done} is loaded)')
+    ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
+    kept = levels.load(workdir)
+    if kept is not None and kept[1] == done:  # a finished run started again
+      final = levels.with_levels(ema, kept[0], os.path.join(workdir, levels.FILE))
+    else:
+      # Every process fits the same levels (same samples, same scans); one writes.
+      final = levels.calibrate(ema, depth[:evaluation.RING_TABLE_SCANS])
+      if is_main:
+        levels.save(workdir, final.variables['params']['depth_levels'], done)
+        log(f'drop levels per (ring, depth) cell fitted to the training split: '
+            f'{levels.FILE} (applied when step {done} is loaded)')
   fe = config.final_eval
   if (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
       os.path.join(workdir, evaluation.AFTER_TRAINING + '.json')):
