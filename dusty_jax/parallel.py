@@ -19,6 +19,7 @@ import faulthandler
 import fcntl
 import itertools
 import os
+import re
 import socket
 import sys
 import threading
@@ -201,10 +202,21 @@ def fail_now(message: str):
   os._exit(LOST_EXIT)  # pylint: disable=protected-access
 
 
+# What Gloo's TCP transport says when the process at the other end is gone.
+_GLOO_LOST = re.compile(r'gloo/transport/\S+\] (Read|Write) error .*(Connection reset by peer|'
+                        r'Broken pipe|Connection refused)')
+
+
 def is_peer_loss(e: BaseException) -> bool:
-  """Whether a runtime error of a multi-process run is a lost peer: a
-  collective (Gloo, NCCL) or the coordination service that lost a process."""
-  return jax.process_count() > 1 and isinstance(e, jax.errors.JaxRuntimeError) and any(
+  """Whether an error of a multi-process run is a lost peer: a runtime error
+  of a collective (Gloo, NCCL) or of the coordination service that lost a
+  process, or any error that carries Gloo's word for a lost connection (a
+  checkpoint's write reports one in its own words)."""
+  if jax.process_count() < 2:
+    return False
+  if _GLOO_LOST.search(str(e)):
+    return True
+  return isinstance(e, jax.errors.JaxRuntimeError) and any(
       w in str(e) for w in ('Gloo', 'NCCL', 'Connection reset', 'Connection refused',
                             'heartbeat', 'UNAVAILABLE', 'coordination service'))
 

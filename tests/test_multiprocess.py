@@ -100,6 +100,29 @@ def _assert_close(got, want, rtol, atol):
                                err_msg=jax.tree_util.keystr(path))
 
 
+GLOO_RESET = ('[../third_party/gloo/transport/tcp/pair.cc:538] Read error '
+              '[127.0.0.1]:41353: Connection reset by peer')
+
+
+def test_a_peer_lost_during_a_checkpoint_write_reads_as_a_lost_peer(monkeypatch):
+  """A peer killed while a checkpoint is written fails the write with Gloo's
+  lost connection, in whatever type orbax raises: that is a lost peer (the
+  run says which checkpoint to resume from), not a failed write."""
+  monkeypatch.setattr(parallel.jax, 'process_count', lambda: 2)
+  try:
+    try:
+      raise RuntimeError(f'sync_global_devices failed: {GLOO_RESET}')
+    except RuntimeError as e:
+      raise checkpoint.CheckpointError('writing checkpoint 4 in run/checkpoints failed') from e
+  except checkpoint.CheckpointError as e:
+    assert any(parallel.is_peer_loss(x) for x in checkpoint.causes(e))
+  # Other errors that mention connections are not: a disk, a refused download.
+  for text in ('No space left on device', 'Connection reset by peer while fetching a URL'):
+    assert not parallel.is_peer_loss(RuntimeError(text))
+  monkeypatch.setattr(parallel.jax, 'process_count', lambda: 1)
+  assert not parallel.is_peer_loss(RuntimeError(GLOO_RESET))
+
+
 def test_a_lost_process_then_a_rerun_resumes_as_if_uninterrupted(tmp_path):
   run = str(tmp_path / 'run')
   procs = _train(tmp_path, run, '--config.num_steps=100000')
