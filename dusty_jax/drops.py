@@ -73,9 +73,8 @@ class DropOptions:
       (far_weight's term sets those).
     depth_levels: after training, the EMA generator's drop level is fitted
       per (ring, depth) cell to the training split's first 1,024 scans
-      (levels.calibrate) and
-      kept in the run (levels.FILE), which loading it applies. Training
-      itself is unchanged.
+      (levels.calibrate) and kept in the run (levels.FILE), which loading
+      it applies. Training itself is unchanged.
   """
   mask_bias: float = 0.0
   ring_bias: bool = False

@@ -4,9 +4,10 @@ A DUSty generator's measurability says which pixels drop; how many drop in
 each part of a scan is its level. A LiDAR's keep rate depends on the laser
 (the ring) and on the range of what it sees, so a cell here is a pixel's
 (ring, depth bin), the bin judged from the mean (normalised inverse) depth
-of the pixel's returned neighbours, itself left out (:func:`neighbour_depth_bin`): a drop and a
-return are binned alike, so real scans, whose dropped depth is unknown, and
-generated ones are binned the same way.
+of the pixel's returned neighbours, itself left out
+(:func:`neighbour_depth_bin`): a drop and a return are binned alike, so real
+scans, whose dropped depth is unknown, and generated ones are binned the
+same way.
 
 :func:`calibrate` fits, after training, one logit offset per cell to the
 generator's measurability, so that its samples keep in each cell the share of
@@ -35,7 +36,7 @@ EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)  # metres between depth bins
 BINS = len(EDGES) + 2  # bin 0 (no returned neighbour), then nearer than EDGES[0], ...
 NEIGHBOURS = (1, 2)  # half-height, half-width of the neighbourhood window
 PSEUDO_COUNT = 20.0  # pixels of its ring's rate that a cell's real rate starts from
-MIN_PIXELS = 50  # generated pixels a cell needs to get an offset of its own
+MIN_PIXELS = 50  # generated returns a cell needs to get an offset of its own
 FILE = 'depth_levels.npz'
 
 

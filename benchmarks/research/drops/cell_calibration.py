@@ -2,7 +2,7 @@
 
 placement_curve.calibrate_rings fits one measurability offset per ring to a
 trained generator; this screen fits one per (ring, depth bin) cell instead,
-the cells drops.ring_depth_cells forms (the bin from the mean depth of a
+the cells dusty_jax.levels forms (the bin from the mean depth of a
 pixel's neighbours, itself left out), on the generated complete depth
 x_tilde. The offsets are set so that, over ``--samples`` generated scans,
 each cell's expected keep rate equals the training split's keep rate of that
@@ -35,29 +35,23 @@ import calibrated_models  # noqa: E402
 import common  # noqa: E402
 import placement_curve  # noqa: E402
 
-PSEUDO = 20.0   # pseudo-count pulling a sparse cell's real rate to its ring's
 MIN_PIXELS = 50  # generated pixels a cell needs to get its own offset
 
 
 def cells_of(x, sensor):
-  """(B, H, W) cells of encoded scans x, neighbours judged on x > ALPHA."""
+  """(B, H, W) cells of encoded scans x, neighbours judged on x > ALPHA
+  (dusty_jax.levels.of_x_tilde, 64 scans at a time)."""
   import jax
-  from dusty_jax import codec, drops
-  f = jax.jit(lambda a: drops.ring_depth_cells(a, a > codec.ALPHA, sensor))
+  from dusty_jax import levels
+  f = jax.jit(lambda a: levels.of_x_tilde(a, sensor))
   return np.concatenate([np.asarray(f(x[i:i + 64])) for i in range(0, len(x), 64)])
 
 
 def real_rates(train, sensor):
   """(H * BINS,) the training scans' keep rate per cell, sparse cells pulled
-  to their ring's rate."""
-  from dusty_jax import codec, drops
-  keep = np.asarray(codec.valid_depth(train, sensor), np.float64)
-  index = cells_of(np.asarray(codec.encode(train, sensor)), sensor).ravel()
-  n = train.shape[1] * drops.RATE_DEPTH_BINS
-  kept = np.bincount(index, keep.ravel(), minlength=n)
-  seen = np.bincount(index, minlength=n)
-  ring = np.repeat(keep.mean(axis=(0, 2)), drops.RATE_DEPTH_BINS)
-  return (kept + PSEUDO * ring) / (seen + PSEUDO)
+  to their ring's rate (dusty_jax.levels.keep_rate)."""
+  from dusty_jax import levels
+  return levels.keep_rate(train, sensor)[0].ravel()
 
 
 def pixel_logit_and_gate(params, raw):
