@@ -14,7 +14,7 @@ Timings on a shared machine are noisy; ``--hlo`` first answers the sharper
 question of whether the two commits compile the train step to the same
 program: it compiles each of HLO_CONFIGS (a small DUSty-I step with R1
 every step and lazy R1; the study's CPU-scale DUSty-I with the authors'
-training and with the 'far' drops preset) with each commit and compares
+training and with the 'dips' drops preset) with each commit and compares
 XLA's optimised HLO instruction by instruction, names, numbers and source
 locations left out: the whole step ('step') and the state update alone,
 its logged metrics left to dead-code elimination ('update'). Identical
@@ -113,7 +113,7 @@ HLO_CONFIGS = {
     'small dusty1, R1 every 1': lambda: _small(1),
     'small dusty1, R1 every 4': lambda: _small(4),
     'study dusty1,authors,cpu': lambda: _study('dusty1', 'authors'),
-    'study dusty1,far,cpu': lambda: _study('dusty1', 'far'),
+    'study dusty1,dips,cpu': lambda: _study('dusty1', 'dips'),
 }
 
 

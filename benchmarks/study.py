@@ -43,18 +43,16 @@ import common
 HERE = os.path.dirname(os.path.abspath(__file__))
 # Run name -> (model, drops preset) of configs.study (experiments/study.py).
 RUNS = {'baseline': ('baseline', 'authors'), 'dusty1': ('dusty1', 'authors'),
-        'dusty2': ('dusty2', 'authors'), 'dusty1_dipdrops': ('dusty1', 'dips'),
-        'dusty2_dipdrops': ('dusty2', 'dips'), 'dusty1_fardrops': ('dusty1', 'far'),
-        'dusty2_fardrops': ('dusty2', 'far')}
+        'dusty2': ('dusty2', 'authors'), 'dusty1_levels': ('dusty1', 'levels'),
+        'dusty1_dipdrops': ('dusty1', 'dips'), 'dusty2_dipdrops': ('dusty2', 'dips')}
 MODELS = tuple(RUNS)
 TRADE_RUN = 'dusty1'  # the run whose inversion time vs quality (trade) is measured
 LABELS = {'baseline': 'Baseline', 'dusty1': 'DUSty-I', 'dusty2': 'DUSty-II',
           'dusty1_dipdrops': 'DUSty-I, mask detached, dips filled',
           'dusty2_dipdrops': 'DUSty-II, mask detached, dips filled',
-          'dusty1_fardrops': 'DUSty-I, peaks held, far returns held',
-          'dusty2_fardrops': 'DUSty-II, peaks held, far returns held'}
+          'dusty1_levels': 'DUSty-I, drop levels per (ring, depth) cell'}
 # What --export writes each model as (dusty_jax/pretrained/NAME.npz).
-EXPORT_NAMES = {'dusty1_fardrops': 'sim-dusty1', 'dusty2_dipdrops': 'sim-dusty2',
+EXPORT_NAMES = {'dusty1_levels': 'sim-dusty1', 'dusty2_dipdrops': 'sim-dusty2',
                 'dusty1': 'sim-dusty1-authors', 'baseline': 'sim-baseline'}
 REUSED_SECTIONS = ('synthesis', 'restoration', 'trade')
 CORRUPTIONS = ('drop:0.9', 'beams:4', 'noise:0.01')
@@ -560,7 +558,7 @@ def main(argv=None):
   picture_trade(trade_result['rows'], os.path.join(a.out, 'study_trade.png'))
   restoration_file = picture_restoration(a.workdir, params_by_model,
                                          os.path.join(a.out, 'study_restoration.png'))
-  variant = next((m for m in ('dusty1_fardrops', 'dusty1_dipdrops')
+  variant = next((m for m in ('dusty1_levels', 'dusty1_dipdrops')
                   if m in params_by_model), key)
   kitti_file = picture_kitti(params_by_model[variant],
                              os.path.join(a.out, 'study_kitti.png'))

@@ -161,16 +161,14 @@ def validate(c) -> None:
   def need_drop(ok, field, why):
     if not ok:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
-  for f in ('rate_weight', 'dip_weight', 'peak_weight', 'far_weight'):
+  for f in ('rate_weight', 'dip_weight'):
     need_drop(d[f] >= 0, f, 'must be >= 0')
   need_drop(d.rate_by in drops_lib.RATE_BY, 'rate_by',
             f"must be one of {', '.join(map(repr, drops_lib.RATE_BY))}")
-  need_drop(not d.rate_skip_far or d.rate_by == 'ring_depth', 'rate_skip_far',
-            f"acts only with rate_by='ring_depth' (rate_by is {d.rate_by!r})")
   need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
             'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
-  acting = [f for f, off in (('rate_weight', 0), ('far_weight', 0), ('mask_bias', 0),
+  acting = [f for f, off in (('rate_weight', 0), ('mask_bias', 0),
                              ('ring_bias', False), ('mask_detached', False),
                              ('depth_levels', False)) if d[f] != off]
   if acting:  # the first option set names the error
@@ -184,13 +182,15 @@ LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0,
           'keep_every': 0, 'checkpoint_minutes': 0.0}
 
 
-# Drop options removed from the library, with the value that turned them off;
-# commit f597033 is the last that had them (their figures are in
+# Drop options removed from the library, with the value that turned them off,
+# and the last commit that has them (LAST_WITH; their figures are in
 # benchmarks/research/drops/).
 REMOVED_DROPS = {'mask_channel': 0.0, 'mask_noise': 0.0, 'mask_dropout': 0.0,
                  'keep_drops': False, 'mask_lr': 1.0, 'rate_shrink': 0.0,
-                 'depth_weight': 0.0, 'range_slope': False}
-LAST_WITH_REMOVED = 'f597033'
+                 'depth_weight': 0.0, 'range_slope': False,
+                 'peak_weight': 0.0, 'far_weight': 0.0, 'rate_skip_far': False}
+LAST_WITH = {**dict.fromkeys(REMOVED_DROPS, 'f597033'),
+             **dict.fromkeys(('peak_weight', 'far_weight', 'rate_skip_far'), 'ca3bdad')}
 
 
 def removed_option(field: str, value, where: str = 'config field drops.'):
@@ -198,7 +198,7 @@ def removed_option(field: str, value, where: str = 'config field drops.'):
   the one that turned it off (a run that used it cannot be reproduced)."""
   if value != REMOVED_DROPS[field]:
     raise ConfigError(f'{where}{field}={value!r}: this option was removed; commit '
-                      f'{LAST_WITH_REMOVED} is the last that has it')
+                      f'{LAST_WITH[field]} is the last that has it')
 
 
 def upgrade(config) -> ml_collections.ConfigDict:

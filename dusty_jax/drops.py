@@ -49,10 +49,10 @@ class DropOptions:
       averaged over rings), or of each (ring, neighbours' depth bin) cell
       ('ring_depth', :func:`ring_depth_rate_penalty`): drops that depend on
       the range within a ring, as a sensor's do.
-    rate_head_only: the rate and far terms are taken on the expected keep
+    rate_head_only: the rate term is taken on the expected keep
       (the measurability, not the sampled mask) of the head applied to the
-      trunk's features under stop_gradient, so they train the measurability
-      head and its biases and leave G's shared trunk to the GAN loss.
+      trunk's features under stop_gradient, so it trains the measurability
+      head and its biases and leaves G's shared trunk to the GAN loss.
     mask_detached: the measurability comes from the head on the trunk's
       features under stop_gradient (the same values), so no gradient of the
       mask (the GAN's straight-through one included) reaches the trunk: it
@@ -60,17 +60,6 @@ class DropOptions:
     dip_weight: nu: G's loss + nu * the mean depth of the dips among the
       generated returns (:func:`dip_penalty`): a checkerboard of far pixels
       that looks like drops to D, which real surfaces hardly have.
-    peak_weight: rho: G's loss + rho * how far the mean height of the peaks
-      among the generated returns exceeds the real batch's
-      (:func:`peak_penalty`): real scans have peaks (poles, trunks); only
-      the excess, a lattice of near pixels, is paid for.
-    far_weight: phi: G's loss + phi * the mean over rings of the squared gap
-      between the share of generated pixels that are returns beyond FAR_M
-      and the real batch's (:func:`far_penalty`). Only the keep values are
-      differentiated, so the term moves drops, not surfaces.
-    rate_skip_far: the 'ring_depth' rate term leaves out its cells beyond
-      FAR_M, whose high real keep rate otherwise holds far regions kept
-      (far_weight's term sets those).
     depth_levels: after training, the EMA generator's drop level is fitted
       per (ring, depth) cell to the training split's first 1,024 scans
       (levels.calibrate) and kept in the run (levels.FILE), which loading
@@ -83,9 +72,6 @@ class DropOptions:
   rate_head_only: bool = False
   mask_detached: bool = False
   dip_weight: float = 0.0
-  peak_weight: float = 0.0
-  far_weight: float = 0.0
-  rate_skip_far: bool = False
   depth_levels: bool = False
 
   @classmethod
@@ -96,20 +82,20 @@ class DropOptions:
   @property
   def g_needs_mask(self) -> bool:
     """G's loss differentiates the keep-mask itself (not only the scan)."""
-    return self.rate_weight > 0 or self.far_weight > 0
+    return self.rate_weight > 0
 
 
 RATE_BY = ('image', 'ring', 'ring_depth')
 
 # The options the shipped models trained with (configs.study's presets):
-# 'authors' is the paper's training; 'dips' trained sim-dusty2 (its drop
-# levels fitted after training), 'far' sim-dusty1
+# 'authors' is the paper's training (sim-baseline, sim-dusty1-authors);
+# 'levels' the same with drop levels fitted after it (sim-dusty1); 'dips'
+# trained sim-dusty2, its levels fitted after training too
 # (benchmarks/research/drops/lineage.py: how they were reached).
-_DIP_TERMS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_by='ring_depth',
-                  rate_head_only=True, mask_detached=True, dip_weight=10.0)
-DIPS = dict(_DIP_TERMS, depth_levels=True)
-FAR = dict(_DIP_TERMS, peak_weight=10.0, far_weight=100.0, rate_skip_far=True)
-PRESETS = {'authors': {}, 'dips': DIPS, 'far': FAR}
+LEVELS = dict(depth_levels=True)
+DIPS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_by='ring_depth',
+            rate_head_only=True, mask_detached=True, dip_weight=10.0, depth_levels=True)
+PRESETS = {'authors': {}, 'levels': LEVELS, 'dips': DIPS}
 
 
 def _psum(x, axis_name):
@@ -172,17 +158,11 @@ def add_penalties(options: DropOptions, sensor: SensorSpec, loss, fake, real,
   """G's ``loss`` plus the terms of the options that are on, each times its
   weight. ``fake``: the generated scans (trainer.Fake: ``scan``, and where
   :attr:`DropOptions.g_needs_mask` their keep-mask ``mask``, with
-  ``rate_head_only`` the detached head's ``head_keep``, with ``far_weight``
-  the complete inverse depth ``inv_depth``); ``real``: the real batch's
+  ``rate_head_only`` the detached head's ``head_keep``); ``real``: the real batch's
   (scans, keep-masks), or None where no option is on."""
   if options.dip_weight > 0:
     loss = loss + options.dip_weight * dip_penalty(fake.scan, axis_name)
-  if options.peak_weight > 0:
-    loss = loss + options.peak_weight * peak_penalty(fake.scan, real[0], axis_name)
-  keep = fake.head_keep if options.rate_head_only else fake.mask  # what the terms move
-  if options.far_weight > 0:
-    loss = loss + options.far_weight * far_penalty(sensor, keep, fake.inv_depth, real[0],
-                                                   axis_name)
+  keep = fake.head_keep if options.rate_head_only else fake.mask  # what the term moves
   if options.rate_weight > 0:
     loss = loss + options.rate_weight * rate_term(options, sensor, keep, fake, real,
                                                   axis_name)
@@ -193,8 +173,7 @@ def rate_term(options: DropOptions, sensor: SensorSpec, keep, fake, real, axis_n
   """``rate_weight``'s term on the generated keep values ``keep``, by
   ``rate_by``; ``fake.scan`` and ``fake.mask`` place the 'ring_depth' cells."""
   if options.rate_by == 'ring_depth':
-    return ring_depth_rate_penalty(sensor, (fake.scan, fake.mask), real, axis_name, keep,
-                                   options.rate_skip_far)
+    return ring_depth_rate_penalty(sensor, (fake.scan, fake.mask), real, axis_name, keep)
   return rate_penalty(keep, real[1], options.rate_by, axis_name)
 
 
@@ -212,87 +191,28 @@ def rate_penalty(keep, real_keep, rate_by: str = 'image', axis_name=None):
 DIP = 0.05  # normalised inverse depth: how far behind both ring neighbours a dip lies
 
 
-def _ring_outliers(scan, sign, margin):
-  """(amounts, counted): per pixel of ``scan`` (B, H, W), how far it lies
-  beyond both ring neighbours by more than ``margin``, behind them (``sign``
-  -1: a dip) or in front of them (+1: a peak), 0 if not; and whether it and
-  both neighbours are returns (> ALPHA; the ring wraps around). The
-  neighbours and the masks are not differentiated."""
-  keep = lax.stop_gradient(scan > codec.ALPHA)
-  left, right = jnp.roll(scan, 1, -1), jnp.roll(scan, -1, -1)
-  bound = lax.stop_gradient(jnp.maximum(left, right) if sign > 0 else jnp.minimum(left, right))
-  counted = keep & jnp.roll(keep, 1, -1) & jnp.roll(keep, -1, -1)
-  return jnp.where(counted, jax.nn.relu(sign * (scan - bound) - margin), 0.0), counted
-
-
 def dips(scan, dip: float = DIP):
   """(depths, counted): per pixel of ``scan`` (B, H, W), how far it lies
   behind both ring neighbours beyond ``dip`` (0 if not), and whether it and
   both neighbours are returns (> ALPHA; the ring wraps around). The
   neighbours and the masks are not differentiated."""
-  return _ring_outliers(scan, -1, dip)
+  keep = lax.stop_gradient(scan > codec.ALPHA)
+  left, right = jnp.roll(scan, 1, -1), jnp.roll(scan, -1, -1)
+  bound = lax.stop_gradient(jnp.minimum(left, right))
+  counted = keep & jnp.roll(keep, 1, -1) & jnp.roll(keep, -1, -1)
+  return jnp.where(counted, jax.nn.relu(bound - scan - dip), 0.0), counted
 
 
-def peaks(scan, peak: float = DIP):
-  """(heights, counted): as ``dips``, for pixels in front of both ring
-  neighbours beyond ``peak``: thin near objects (poles, trunks) in real
-  scans, a lattice of near pixels in generated ones."""
-  return _ring_outliers(scan, 1, peak)
-
-
-def outlier_share(outliers, scan, axis_name=None):
-  """The share of the counted pixels of ``scan`` that are ``outliers``
-  (:func:`dips` or :func:`peaks`)."""
-  amount, counted = outliers(scan)
+def dip_share(scan, axis_name=None):
+  """The share of the counted pixels of ``scan`` that dip (:func:`dips`)."""
+  amount, counted = dips(scan)
   return _psum((amount > 0).sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
-
-
-def _mean_amount(outliers, scan, axis_name=None):
-  amount, counted = outliers(scan)
-  return _psum(amount.sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
 
 
 def dip_penalty(scan, axis_name=None):
   """``dip_weight``'s term: the mean dip depth over the counted pixels."""
-  return _mean_amount(dips, scan, axis_name)
-
-
-def peak_penalty(scan, real, axis_name=None):
-  """``peak_weight``'s term: how far the mean peak height over the counted
-  pixels of ``scan`` exceeds the real batch's (0 if it does not). Real
-  scans have peaks, their poles and trunks, so G keeps as many as they
-  have and pays for the excess only."""
-  excess = _mean_amount(peaks, scan, axis_name) - lax.stop_gradient(
-      _mean_amount(peaks, real, axis_name))
-  return jax.nn.relu(excess)
-
-
-FAR_M = 40.0  # metres: a return beyond this is far (far_weight, far_share)
-
-
-def is_far(x, sensor: SensorSpec):
-  """Pixels of (B, H, W) normalised inverse depth farther than FAR_M (and
-  not a drop: > ALPHA); not differentiated."""
-  x = lax.stop_gradient(x)
-  return (x > codec.ALPHA) & (x <= codec.encode(jnp.float32(FAR_M), sensor))
-
-
-def far_share(scan, sensor: SensorSpec, axis_name=None):
-  """The share of the pixels of ``scan`` that are returns beyond FAR_M."""
-  n = _psum(np.prod(scan.shape), axis_name)
-  return _psum(is_far(scan, sensor).sum(), axis_name) / n
-
-
-def far_penalty(sensor: SensorSpec, keep, inv_depth, real, axis_name=None):
-  """``far_weight``'s term: the mean over rows of the squared gap between
-  the share of generated pixels that are far returns, sum(keep x far) / n
-  with far judged on the complete ``inv_depth`` (x_tilde), and the share of
-  the ``real`` scans' pixels that are. Only ``keep`` is differentiated."""
-  n = _psum(keep.shape[0] * keep.shape[2], axis_name)
-  share = lambda a: _psum(a.sum(axis=(0, 2)), axis_name) / n
-  fake = share(keep * is_far(inv_depth, sensor))
-  target = lax.stop_gradient(share(is_far(real, sensor).astype(keep.dtype)))
-  return jnp.mean(jnp.square(fake - target))
+  amount, counted = dips(scan)
+  return _psum(amount.sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
 
 
 # The ``rate_by='ring_depth'`` cells are levels.py's (ring, neighbours' depth bin).
@@ -300,14 +220,12 @@ RATE_DEPTH_EDGES, RATE_DEPTH_BINS = levels.EDGES, levels.BINS
 neighbour_depth_bin, ring_depth_cells = levels.neighbour_depth_bin, levels.cells
 
 
-def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int, axis_name=None,
-                      counted=None):
+def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int, axis_name=None):
   """The squared gap between the generated and the real keep rate of each
   cell of ``cells`` / ``real_cells`` (ints in [0, num_cells): one per
   pixel), weighted by the generated pixels in the cell, so each generated
   pixel is pulled towards its cell's real rate as the other rate terms pull
-  it towards the ring's. Cells empty on either side weigh 0, and so do the
-  cells ``counted`` ((num_cells,) bools) marks False.
+  it towards the ring's. Cells empty on either side weigh 0.
   """
   flat = lambda a: a.reshape(-1)
   count = lambda c, w: _psum(jax.ops.segment_sum(flat(w), flat(c), num_cells), axis_name)
@@ -317,29 +235,20 @@ def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int, axis_n
   kept_real = lax.stop_gradient(count(real_cells, real_keep))
   real_rate = kept_real / jnp.maximum(n_real, 1.0)
   weight = jnp.where(n_real > 0, n_fake, 0.0)
-  if counted is not None:
-    weight = jnp.where(counted, weight, 0.0)
   return jnp.sum(weight * jnp.square(fake_rate - real_rate)) / jnp.maximum(weight.sum(), 1.0)
 
 
-def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, axis_name=None, keep=None,
-                            skip_far: bool = False):
+def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, axis_name=None, keep=None):
   """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
   cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are not
   differentiated. ``keep``: the generated keep values to differentiate
-  (default: the mask ``fake[1]``, which bins the cells). ``skip_far``: the
-  cells whose depth bin lies beyond FAR_M weigh 0, so far_weight's term
-  alone sets how often far pixels return."""
+  (default: the mask ``fake[1]``, which bins the cells)."""
   cells = lambda scan, keep: ring_depth_cells(lax.stop_gradient(scan),
                                               lax.stop_gradient(keep) > 0.5, sensor)
   h = fake[0].shape[1]
   keep = fake[1] if keep is None else keep
-  counted = None
-  if skip_far:  # bin 0 (no returned neighbour), then bins 1.. from 0 m, edges[0], ...
-    near = [True] + [start < FAR_M for start in (0.0,) + RATE_DEPTH_EDGES]
-    counted = jnp.asarray(np.tile(near, h))
   return cell_rate_penalty(keep, real[1], cells(*fake), cells(*real), h * RATE_DEPTH_BINS,
-                           axis_name, counted)
+                           axis_name)
 
 
 # ----------------------------------------------------------------------------
@@ -355,11 +264,5 @@ def diagnostics(sensor: SensorSpec, scan, mask, real, axis_name=None) -> dict:
       mask_drop_rate=jnp.mean(mask < 0.5),
       real_drop_rate=jnp.mean(real <= codec.ALPHA),
       # Share of the generated returns that dip: dip_weight.
-      dip_share=outlier_share(dips, scan, axis_name),
-      real_dip_share=outlier_share(dips, real, axis_name),
-      # Share of them in front of both neighbours: peak_weight.
-      peak_share=outlier_share(peaks, scan, axis_name),
-      real_peak_share=outlier_share(peaks, real, axis_name),
-      # Share of the pixels that are returns beyond FAR_M: far_weight.
-      far_share=far_share(scan, sensor, axis_name),
-      real_far_share=far_share(real, sensor, axis_name))
+      dip_share=dip_share(scan, axis_name),
+      real_dip_share=dip_share(real, axis_name))

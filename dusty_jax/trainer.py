@@ -123,12 +123,10 @@ class Fake:
   """Generated scans as G's loss sees them (``g_step``), each (B, H, W):
   ``scan``, what D sees; and, where drops terms differentiate them
   (drops.add_penalties), the straight-through keep-``mask``, the detached
-  head's expected keep ``head_keep`` (drops.rate_head_only) and the
-  complete inverse depth ``inv_depth`` (drops.far_weight); None otherwise."""
+  head's expected keep ``head_keep`` (drops.rate_head_only); None otherwise."""
   scan: jax.Array
   mask: jax.Array | None = None
   head_keep: jax.Array | None = None
-  inv_depth: jax.Array | None = None
 
 
 def fake_scans(setup: Setup, params, z, keys, train=True, detached_head=False):
@@ -273,8 +271,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
     out = fake_scans(setup, p, z, kmask, detached_head=setup.drops.rate_head_only)
     if not needs_mask:
       return Fake(scan=out['scan']), out['mask']
-    return Fake(scan=out['scan'], mask=out['mask'], head_keep=out.get('head_keep'),
-                inv_depth=out['inv_depth'] if setup.drops.far_weight > 0 else None)
+    return Fake(scan=out['scan'], mask=out['mask'], head_keep=out.get('head_keep'))
   real = (batch, (batch > codec.ALPHA).astype(batch.dtype))
   if needs_mask:
     fake, fake_vjp = jax.vjp(fakes, _local(state.g_params, axis_name))

@@ -34,7 +34,7 @@ def test_every_experiment_file_loads_a_valid_config(name):
 
 @pytest.mark.parametrize('arg, want', [
     ('', ('dusty1', 'authors', 'cpu')), ('dusty2', ('dusty2', 'authors', 'cpu')),
-    ('dusty1,far,cpu', ('dusty1', 'far', 'cpu')), ('baseline,,paper', ('baseline', 'authors',
+    ('dusty1,levels,cpu', ('dusty1', 'levels', 'cpu')), ('baseline,,paper', ('baseline', 'authors',
                                                                        'paper')),
     (' dusty2 , dips ', ('dusty2', 'dips', 'cpu'))])
 def test_the_study_file_takes_model_preset_and_scale(arg, want):
@@ -46,7 +46,7 @@ def test_the_study_file_takes_model_preset_and_scale(arg, want):
 
 
 @pytest.mark.parametrize('args, what', [(('dusty3',), 'model'), (('dusty1', 'channel'), 'preset'),
-                                        (('dusty1', 'far', 'gpu'), 'scale')])
+                                        (('dusty1', 'levels', 'gpu'), 'scale')])
 def test_an_unknown_study_name_lists_the_known_ones(args, what):
   with pytest.raises(configs.ConfigError, match=rf'^unknown study {what} .*; known: \w+, '):
     configs.study(*args)

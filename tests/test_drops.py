@@ -103,11 +103,6 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
   assert (g[..., 2:14] < 0).all() and (g[..., 18:30] > 0).all()
   ring = drops.rate_penalty(fake_keep, real[1], 'ring')
   assert float(ring) == 0.0
-  # rate_skip_far: the cells beyond 40 m (here the far half, at 50 m) weigh
-  # 0, so the far pixels get no gradient; the near ones are still pulled up.
-  skip = lambda k: drops.ring_depth_rate_penalty(sensor, (fake_scan, k), real, skip_far=True)
-  g_skip = np.asarray(jax.grad(skip)(fake_keep))
-  assert (g_skip[..., 18:30] == 0).all() and (g_skip[..., 2:14] < 0).all()
   # Drops at another drop constant (config drop_const) change nothing.
   at = lambda x, k, c: jnp.where(k > 0, x, c)
   moved = drops.ring_depth_rate_penalty(
@@ -225,7 +220,7 @@ def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
 
 def test_a_step_with_the_rate_options_moves_each_ring_to_its_rate():
   # rate_by='ring_depth' (its cells nest in the rings); 'ring' runs in
-  # test_far_weight_drops_the_far_pixels.
+  # test_the_dip_term_fills_the_generated_dips.
   c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_bias=1.4, rate_weight=1e4,
                            rate_by='ring_depth', rate_head_only=True, ring_bias=True)
   mesh = parallel.data_mesh(jax.devices()[:1])
@@ -248,20 +243,17 @@ def test_a_step_with_the_rate_options_moves_each_ring_to_its_rate():
 
 
 @pytest.mark.parametrize('field,value', [('rate_weight', -1.0), ('rate_by', 'pixel'),
-                                         ('rate_head_only', True), ('dip_weight', -1.0),
-                                         ('peak_weight', -1.0), ('far_weight', -1.0),
-                                         ('rate_skip_far', True)])
+                                         ('rate_head_only', True), ('dip_weight', -1.0)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
-  c.drops[field] = value  # rate_skip_far with rate_by='image', rate_head_only
-                          # without a rate term
+  c.drops[field] = value  # rate_head_only without a rate term
   with pytest.raises(configs.ConfigError, match=f'drops.{field}'):
     configs.validate(c)
 
 
 @pytest.mark.parametrize('field,value', [('rate_weight', 1.0), ('ring_bias', True),
-                                         ('far_weight', 1.0), ('mask_detached', True),
-                                         ('mask_bias', 1.0)])
+                                         ('mask_detached', True), ('mask_bias', 1.0),
+                                         ('depth_levels', True)])
 def test_baseline_refuses_mask_options(field, value):
   c = tiny_config(model='baseline')
   c.drops[field] = value
@@ -269,23 +261,27 @@ def test_baseline_refuses_mask_options(field, value):
     configs.validate(c)
 
 
-@pytest.mark.parametrize('name, model, preset', [('sim-dusty1', 'dusty1', 'far'),
+@pytest.mark.parametrize('name, model, preset', [('sim-dusty1', 'dusty1', 'levels'),
                                                  ('sim-dusty2', 'dusty2', 'dips')])
 def test_the_presets_are_what_the_shipped_models_trained_with(name, model, preset):
   """Each shipped model records its drops options (generator.export's
-  ``training``); read as an old config (configs.upgrade: the removed
-  options, off there, leave), they are its preset's."""
+  ``training``) and the config that trained it; that config (or, where it
+  has left experiments/, the one that trains the same today) gives the
+  model's preset, and the recorded options read as a config
+  (configs.upgrade: removed options, off there, leave) are the preset's."""
   training = pretrained.describe(name)['training']
   trained = training['drops']
-  # The config it names has left experiments/; the one that trains the same:
-  assert training['config_today'] == f'experiments/study.py:{model},{preset},cpu'
   here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-  assert not os.path.exists(os.path.join(here, training['config']))
-  path, arg = training['config_today'].split(':')
-  spec = importlib.util.spec_from_file_location('study_config', os.path.join(here, path))
+  if 'config_today' in training:
+    assert training['config_today'] == f'experiments/study.py:{model},{preset},cpu'
+    assert not os.path.exists(os.path.join(here, training['config']))
+  path, _, arg = training.get('config_today', training['config']).partition(':')
+  spec = importlib.util.spec_from_file_location('shipped_config', os.path.join(here, path))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
-  assert module.get_config(arg).to_dict() == configs.study(model, preset).to_dict()
+  config = module.get_config(arg) if arg else module.get_config()
+  assert config.model == model
+  assert config.drops.to_dict() == configs.study(model, preset).drops.to_dict()
   old = configs.study(model).to_dict()
   old['drops'] = trained
   assert configs.upgrade(old).drops.to_dict() == configs.study(model, preset).drops.to_dict()
@@ -302,12 +298,13 @@ def test_a_removed_option_loads_where_it_was_off_and_is_refused_where_on(tmp_pat
   loaded = configs.load(str(tmp_path))
   configs.validate(loaded)
   assert loaded.drops.to_dict() == c.drops.to_dict()
-  for field, value in (('mask_channel', 1.0), ('keep_drops', True), ('mask_lr', 0.1),
-                       ('range_slope', True)):
+  for field, value, last in (('mask_channel', 1.0, 'f597033'), ('keep_drops', True, 'f597033'),
+                             ('mask_lr', 0.1, 'f597033'), ('range_slope', True, 'f597033'),
+                             ('far_weight', 100.0, 'ca3bdad'), ('rate_skip_far', True, 'ca3bdad')):
     path.write_text(json.dumps(dict(saved, drops=dict(saved['drops'], **{field: value}))))
     with pytest.raises(configs.ConfigError, match=(
         rf'^config field drops\.{field}={value!r}: this option was removed; '
-        r'commit f597033 is the last that has it$')):
+        rf'commit {last} is the last that has it$')):
       configs.load(str(tmp_path))
 
 
@@ -327,7 +324,7 @@ def test_a_generator_description_with_range_slope_off_still_loads(tiny, tmp_path
 
 def test_only_the_ring_bias_changes_the_architecture():
   a, b = tiny_config(), tiny_config()
-  b.drops.update(drops.FAR, ring_bias=False)
+  b.drops.update(drops.DIPS, ring_bias=False)
   assert configs.architecture_diff(a, b) == {}
   b.drops.ring_bias = True
   assert 'drops' in configs.architecture_diff(a, b)
@@ -336,19 +333,13 @@ def test_only_the_ring_bias_changes_the_architecture():
   assert configs.architecture_diff(old, a) == {}
 
 
-@pytest.mark.parametrize('term', ['dip_weight', 'peak_weight'])
-def test_the_depth_terms_move_the_generated_returns(term):
-  """One G step with the term weighted to dominate fills the dips among the
-  generated returns (dip_weight), or lowers their peaks (peak_weight; the
-  flat real scans, x = 0.8, have none), where the same step without it
-  does not."""
-  measure = {
-      'dip_weight': lambda scan, real: drops.dip_penalty(scan),
-      'peak_weight': lambda scan, real: drops.peak_penalty(scan, real)}[term]
+def test_the_dip_term_fills_the_generated_dips():
+  """One G step with dip_weight weighted to dominate fills the dips among
+  the generated returns, where the same step without it does not."""
   gaps = {}
   for weight in (0.0, 1e3):
     c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
-                             rate_head_only=True, **{term: weight})
+                             rate_head_only=True, dip_weight=weight)
     mesh = parallel.data_mesh(jax.devices()[:1])
     step = parallel.data_parallel(trainer.step_fn(setup), mesh)
     z = jax.random.normal(jax.random.key(2), (c.batch_size, setup.settings.latent_dim))
@@ -357,7 +348,7 @@ def test_the_depth_terms_move_the_generated_returns(term):
                     ALPHA).astype(np.float32)
     def gap(g_params):
       scan = trainer.fake_scans(setup, g_params, z, keys)['scan']
-      return float(measure(scan, jnp.asarray(real)))
+      return float(drops.dip_penalty(scan))
     before = gap(state.g_params)
     state, m = step(parallel.replicate(state, mesh), parallel.shard_batch(real, mesh),
                     jax.random.key(1))
@@ -368,108 +359,31 @@ def test_the_depth_terms_move_the_generated_returns(term):
   assert gaps[1e3] < -before / 100 and gaps[1e3] < gaps[0.0] - before / 100, (before, gaps)
 
 
-@pytest.mark.parametrize('kind', ['dips', 'peaks'])
-def test_ring_outliers_against_loops(kind):
-  sign = {'dips': -1, 'peaks': 1}[kind]
+def test_dips_against_loops():
   rng = np.random.default_rng(6)
   x = rng.uniform(-0.9, 1, (3, 5, 12)).astype(np.float32)
   x[rng.uniform(size=x.shape) < 0.2] = ALPHA
   x[0, 0, 0] = -2.0  # a drop at another drop constant is a drop too
-  depth, counted = (np.asarray(a) for a in getattr(drops, kind)(jnp.asarray(x)))
+  depth, counted = (np.asarray(a) for a in drops.dips(jnp.asarray(x)))
   want_d, want_c = np.zeros(x.shape), np.zeros(x.shape, bool)
   for n, r, c in np.ndindex(*x.shape):
     trio = [x[n, r, (c + k) % 12] for k in (-1, 0, 1)]  # the ring wraps around
     if min(trio) > ALPHA:
       want_c[n, r, c] = True
-      bound = max(trio[0], trio[2]) if sign > 0 else min(trio[0], trio[2])
-      want_d[n, r, c] = max(0.0, sign * (trio[1] - bound) - drops.DIP)
+      want_d[n, r, c] = max(0.0, min(trio[0], trio[2]) - trio[1] - drops.DIP)
   np.testing.assert_array_equal(counted, want_c)
   np.testing.assert_allclose(depth, want_d, rtol=0, atol=1e-6)
   assert 0 < (want_d > 0).sum() < want_c.sum()
-  if kind == 'dips':
-    penalty = drops.dip_penalty
-    assert float(drops.outlier_share(drops.dips, jnp.asarray(x))) == pytest.approx(
-        (want_d > 0).sum() / want_c.sum(), rel=1e-6)
-  else:  # against real scans without peaks: their mean height
-    penalty = lambda q: drops.peak_penalty(q, jnp.zeros_like(q))
+  assert float(drops.dip_share(jnp.asarray(x))) == pytest.approx(
+      (want_d > 0).sum() / want_c.sum(), rel=1e-6)
+  penalty = drops.dip_penalty
   assert float(penalty(jnp.asarray(x))) == pytest.approx(want_d.sum() / want_c.sum(), rel=1e-5)
-  # The gradient moves each outlier towards its neighbours and leaves them.
+  # The gradient moves each dip towards its neighbours and leaves them.
   g = np.asarray(jax.grad(penalty)(jnp.asarray(x)))
-  np.testing.assert_allclose(g, np.where(want_d > 0, sign / want_c.sum(), 0.0), rtol=1e-5)
+  np.testing.assert_allclose(g, np.where(want_d > 0, -1 / want_c.sum(), 0.0), rtol=1e-5)
   # Rings that vary smoothly all the way round have none; one pixel
-  # pushed far beyond its neighbours is one.
+  # pushed far behind its neighbours is one.
   smooth = np.broadcast_to(0.2 * np.cos(np.arange(12) * np.pi / 6), (1, 5, 12)).copy()
   assert float(penalty(jnp.asarray(smooth))) == 0.0
-  smooth[0, 2, 6] += sign * 0.2
+  smooth[0, 2, 6] -= 0.2
   assert float(penalty(jnp.asarray(smooth))) > 0.0
-
-
-def test_peak_penalty_pays_for_the_excess_only():
-  """Real scans' own peaks are free: the term is the generated mean height
-  beyond the real one, 0 below it, and the real batch gets no gradient."""
-  flat = np.full((2, 4, 16), 0.3, np.float32)
-  real = flat.copy()
-  real[0, 1, 3] = real[1, 2, 9] = 0.6  # two poles: height 0.3 - DIP each
-  real_mean = 2 * (0.3 - drops.DIP) / real.size
-  fake = flat.copy()
-  fake[0, 0, ::4] = 0.5  # a lattice of four peaks, 0.2 - DIP each
-  fake_mean = 4 * (0.2 - drops.DIP) / fake.size
-  assert fake_mean > real_mean
-  got = drops.peak_penalty(jnp.asarray(fake), jnp.asarray(real))
-  assert float(got) == pytest.approx(fake_mean - real_mean, rel=1e-5)
-  assert float(drops.peak_penalty(jnp.asarray(real), jnp.asarray(fake))) == 0.0
-  g_real = jax.grad(lambda q: drops.peak_penalty(jnp.asarray(fake), q))(jnp.asarray(real))
-  assert float(jnp.abs(g_real).max()) == 0.0
-
-
-def test_far_penalty_against_numpy():
-  """far_weight's term: per row, the share of pixels kept with a complete
-  depth beyond FAR_M minus the real scans' share of far returns, squared and
-  averaged over rows; its gradient reaches the keep values of far pixels
-  only, each by its row's gap, and nothing reaches x_tilde."""
-  sensor = tiny_sensor(16, 64)
-  code = float(codec.encode(np.float32(drops.FAR_M), sensor))
-  rng = np.random.default_rng(5)
-  inv = rng.uniform(-1.0, 0.0, (4, 16, 64)).astype(np.float32)  # about half beyond
-  keep = rng.uniform(size=inv.shape).astype(np.float32)         # expected keep values
-  real = np.where(rng.uniform(size=inv.shape) < 0.2, ALPHA,
-                  rng.uniform(-1.0, 1.0, inv.shape)).astype(np.float32)
-  far = (inv > ALPHA) & (inv <= code)
-  real_far = (real > ALPHA) & (real <= code)
-  gap = (keep * far).mean(axis=(0, 2)) - real_far.mean(axis=(0, 2))
-  assert 0 < far.mean() < 1 and 0 < real_far.mean() < 1
-  f = lambda k, x: drops.far_penalty(sensor, k, x, jnp.asarray(real))
-  assert float(f(jnp.asarray(keep), jnp.asarray(inv))) == pytest.approx(
-      np.mean(gap ** 2), rel=1e-5)
-  gk, gx = jax.grad(f, argnums=(0, 1))(jnp.asarray(keep), jnp.asarray(inv))
-  want = 2 * gap[None, :, None] / (4 * 64) / 16 * far
-  np.testing.assert_allclose(np.asarray(gk), want, rtol=1e-4, atol=1e-10)
-  assert float(jnp.abs(gx).max()) == 0.0
-  # far_share, the logged metric: the share of the pixels that are far returns.
-  assert float(drops.far_share(jnp.asarray(real), sensor)) == pytest.approx(real_far.mean())
-
-
-def test_far_weight_drops_the_far_pixels(monkeypatch):
-  """One G step with far_weight dominating lowers the mean expected keep of
-  the generated pixels beyond FAR_M (here 2 m, so that an untrained G has
-  some; judged before the step) towards the real scans' share of far
-  returns (none: they are all at 0.8) by more than the same step without
-  it, where the ring rate term pulls towards the real keep rate, 1."""
-  monkeypatch.setattr(drops, 'FAR_M', 2.0)
-  shares = {}
-  for weight in (0.0, 1e3):
-    c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
-                             rate_head_only=True, far_weight=weight)
-    mesh = parallel.data_mesh(jax.devices()[:1])
-    step = parallel.data_parallel(trainer.step_fn(setup), mesh)
-    z = jax.random.normal(jax.random.key(2), (c.batch_size, setup.settings.latent_dim))
-    keys = jax.random.split(jax.random.key(3), c.batch_size)
-    real = np.full((c.batch_size, c.sensor.height, c.sensor.width), 0.8, np.float32)
-    out = lambda p: trainer.fake_scans(setup, p, z, keys, detached_head=True)
-    far = drops.is_far(out(state.g_params)['inv_depth'], setup.sensor)  # pixels far at the start
-    kept_far = lambda p: float(jnp.sum(out(p)['head_keep'] * far) / jnp.sum(far))
-    before = kept_far(state.g_params)
-    state, _ = step(parallel.replicate(state, mesh), parallel.shard_batch(real, mesh),
-                    jax.random.key(1))
-    shares[weight] = kept_far(parallel.to_host(state.g_params)) - before
-  assert shares[1e3] < shares[0.0] - before / 1000, (before, shares)

@@ -54,9 +54,9 @@ def test_rate_terms_are_the_global_batch_s_on_four_devices():
   # The drops terms' tallies are summed over the devices, so one and four
   # devices train the same. Each device's share of the reals drops at its
   # own rate, so per-device rates would differ from the batch's. Two steps,
-  # with sim-dusty1's options (the rate term weighted up).
+  # with sim-dusty2's options (the rate term weighted up).
   config = tiny_config()
-  config.drops.update(drops.FAR, rate_weight=1e3)
+  config.drops.update(drops.DIPS, rate_weight=1e3)
   configs.validate(config)
   rates = np.repeat([0.05, 0.3, 0.6, 0.9], config.batch_size // 4)
   one = run_steps(2, devices=jax.devices()[:1], config=config, drop_rates=rates)

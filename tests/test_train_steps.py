@@ -146,15 +146,15 @@ def test_ema_update_and_decay():
 
 
 def test_g_step_with_drops_terms_adds_them_to_the_gradient_not_the_loss():
-  """With sim-dusty1's options ('far'), G's update is Adam on the gradient
+  """With sim-dusty2's options ('dips'), G's update is Adam on the gradient
   of the adversarial loss plus drops.add_penalties, taken through the
-  Fake's scan, mask, detached head and x_tilde; the reported loss is the
+  Fake's scan, mask and detached head; the reported loss is the
   adversarial one alone."""
   config = tiny_config()
-  config.drops.update(drops.FAR)
+  config.drops.update(drops.DIPS)
   setup = trainer.make_setup(config, tiny_sensor(config.sensor.height, config.sensor.width))
   state = trainer.init_state(setup, jax.random.key(0), np.linspace(0.5, 0.9, 16))
-  assert setup.drops.rate_head_only and setup.drops.far_weight > 0
+  assert setup.drops.rate_head_only and setup.drops.dip_weight > 0
   z, mask_keys = _fakes(setup)
   aug_keys = _keys(N, 3)
   x = _batch(setup, 4)
@@ -163,8 +163,7 @@ def test_g_step_with_drops_terms_adds_them_to_the_gradient_not_the_loss():
 
   def render(p):
     out = trainer.fake_scans(setup, p, z, mask_keys, detached_head=True)
-    return trainer.Fake(scan=out['scan'], mask=out['mask'], head_keep=out['head_keep'],
-                        inv_depth=out['inv_depth'])
+    return trainer.Fake(scan=out['scan'], mask=out['mask'], head_keep=out['head_keep'])
 
   @jax.jit
   def step(gp, go, dp):
@@ -181,10 +180,9 @@ def test_g_step_with_drops_terms_adds_them_to_the_gradient_not_the_loss():
     f = render(p)
     keep = f.head_keep
     return (adversarial(p)
-            + 10.0 * drops.dip_penalty(f.scan) + 10.0 * drops.peak_penalty(f.scan, real[0])
-            + 100.0 * drops.far_penalty(setup.sensor, keep, f.inv_depth, real[0])
+            + 10.0 * drops.dip_penalty(f.scan)
             + 100.0 * drops.ring_depth_rate_penalty(setup.sensor, (f.scan, f.mask), real,
-                                                    keep=keep, skip_far=True))
+                                                    keep=keep))
 
   grads = jax.jit(jax.grad(objective))(state.g_params)
   want, _ = _adam(setup.g_tx, grads, state.g_opt, state.g_params)

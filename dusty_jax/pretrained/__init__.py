@@ -45,8 +45,7 @@ def with_encoder() -> list[str]:
 # Configs the shipped models name that have since left experiments/, and
 # the config that trains the same today (tests/test_drops.py checks that
 # its drops options are the ones the model records).
-CONFIGS_TODAY = {'experiments/study_dusty1_fardrops.py': 'experiments/study.py:dusty1,far,cpu',
-                 'experiments/study_dusty2_dipdrops.py': 'experiments/study.py:dusty2,dips,cpu'}
+CONFIGS_TODAY = {'experiments/study_dusty2_dipdrops.py': 'experiments/study.py:dusty2,dips,cpu'}
 
 
 def describe(name: str) -> dict:

@@ -36,8 +36,10 @@ import placement_curve  # noqa: E402
 def load(item: str):
   from dusty_jax import generator, pretrained
   if '=' in item:
-    name, workdir = item.split('=', 1)
-    return name, generator.load(workdir, log=lambda *_: None)[0]
+    name, where = item.split('=', 1)
+    if where.endswith('.npz'):  # an exported generator (generator.export)
+      return name, generator.load_file(where)
+    return name, generator.load(where, log=lambda *_: None)[0]
   return item, pretrained.load_pretrained(item)
 
 
@@ -83,7 +85,7 @@ def draw(shown: dict, depth, drop_prob, sensor, path: str):
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-  p.add_argument('--models', required=True, help='NAME or NAME=WORKDIR, comma-separated')
+  p.add_argument('--models', required=True, help='NAME, NAME=WORKDIR or NAME=FILE.npz, comma-separated')
   p.add_argument('--data-dir', required=True, help='the prepared simulated dataset')
   p.add_argument('--split', default='val', choices=('val', 'test'))
   p.add_argument('--num', type=int, default=64, help='held-out scans inverted')

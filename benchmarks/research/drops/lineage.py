@@ -35,7 +35,7 @@ DIP = dict(DETACHED, dip_weight=10.0)
 # G pays for peaks beyond the real scans' (sim-dusty1-peaks).
 PEAK = dict(DIP, peak_weight=10.0)
 # Each ring's share of far returns held to the real batch's, the rate
-# term's far cells left to it (sim-dusty1; drops.PRESETS['far']).
+# term's far cells left to it (sim-dusty1 until 2026-11-26; left the library after ca3bdad).
 FAR = dict(PEAK, far_weight=100.0, rate_skip_far=True)
 
 # Run-name suffix -> the options it adds.

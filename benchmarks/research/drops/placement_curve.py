@@ -7,9 +7,12 @@ per ring after training (:func:`calibrate_rings`), beside the training
 split's per-ring table. The drop rate of the training log comes along.
 
     python benchmarks/research/drops/placement_curve.py \
-        --runs faithful=RUN_A,ring_norm=RUN_B --split val --num 64 --steps 300
+        --runs faithful=RUN_A,other=RUN_B --split val --num 64 --steps 300
 
-Writes NAME.json and NAME.png to --out. Choose on --split val; report test.
+Forms: as trained, one offset per ring, and levels per (ring, depth) cell
+(dusty_jax.levels), each with the drop rate of 256 samples. ``--follow STEP``
+scores a run while it trains. Writes NAME.json (after every checkpoint) and
+NAME.png to --out. Choose on --split val; report test.
 """
 
 from __future__ import annotations
@@ -79,23 +82,64 @@ def score(params, depth, truth, ring_keep, steps: int) -> dict:
           'completion_abs_rel': gt['complete_depth'].get('abs_rel')}
 
 
+FORMS = ('trained', 'calibrated', 'levels')
+
+
+def forms_of(params, train_depth, ring_keep, forms):
+  """Each form of a checkpoint's generator: as trained, its level
+  calibrated with one offset per ring (:func:`calibrate_rings`), and with
+  drop levels per (ring, depth) cell (dusty_jax.levels.calibrate)."""
+  from dusty_jax import levels
+  make = {'trained': lambda: params,
+          'calibrated': lambda: calibrate_rings(params, ring_keep),
+          'levels': lambda: levels.calibrate(params, train_depth)}
+  for form in forms:
+    yield form, make[form]()
+
+
+def sample_drop_rate(params, num: int = 256) -> float:
+  import jax
+  from dusty_jax import codec, sampling
+  scans = np.asarray(sampling.sample_scans(params, jax.random.key(11), num))
+  return float(np.mean(scans <= codec.ALPHA))
+
+
 def run_curve(workdir: str, depth, truth, ring_keep, steps: int, every: int, log,
-              at=()) -> dict:
+              at=(), forms=FORMS, train_depth=None, follow: int = 0, deadline: float = 0.0,
+              save=lambda out: None) -> dict:
+  """Scores each kept checkpoint of ``workdir`` in each of ``forms``. With
+  ``follow`` > 0, waits for checkpoints of a run still training until step
+  ``follow`` is scored or time.time() passes ``deadline``; ``save(out)``
+  is called after each checkpoint, so a cut-off run keeps what it scored."""
+  import time
   from dusty_jax import checkpoint, generator
-  mngr = checkpoint.manager(workdir, keep=100000)
-  out = {'step': [], 'trained': [], 'calibrated': []}
-  for s in sorted(mngr.all_steps()):
-    if s == 0 or (every and s % every) or (at and s not in at):
-      continue
-    params, _ = generator.load(workdir, step=s, log=lambda *_: None)
-    trained = score(params, depth, truth, ring_keep, steps)
-    calibrated = score(calibrate_rings(params, ring_keep), depth, truth, ring_keep, steps)
-    out['step'].append(s), out['trained'].append(trained), out['calibrated'].append(calibrated)
-    t, c = trained['placement'], calibrated['placement']
-    log(f'  step {s}: AUC<40 {t["auc_near"]:.3f} within {t["auc_near_within_ring"]:.3f} '
-        f'ECE {t["ece"]:.3f} | calibrated AUC<40 {c["auc_near"]:.3f} within '
-        f'{c["auc_near_within_ring"]:.3f} ECE {c["ece"]:.3f}')
-  out['log'] = training_log(workdir)
+  out = {'step': [], **{f: [] for f in forms}}
+  done = set()
+  while True:
+    mngr = checkpoint.manager(workdir, keep=100000) if os.path.isdir(
+        os.path.join(workdir, 'checkpoints')) else None
+    todo = [s for s in sorted(mngr.all_steps() if mngr else [])
+            if s and s not in done and not (every and s % every) and not (at and s not in at)]
+    for s in todo:
+      done.add(s)
+      params, _ = generator.load(workdir, step=s, log=lambda *_: None)
+      out['step'].append(s)
+      line = [f'  step {s}:']
+      for form, p in forms_of(params, train_depth, ring_keep, forms):
+        r = score(p, depth, truth, ring_keep, steps)
+        r['sample_drop_rate'] = sample_drop_rate(p)
+        out[form].append(r)
+        t = r['placement']
+        line.append(f'{form} AUC<40 {t["auc_near"]:.3f} within {t["auc_near_within_ring"]:.3f} '
+                    f'ECE {t["ece"]:.3f} drop {r["sample_drop_rate"]:.3f} |')
+      out['log'] = training_log(workdir)
+      save(out)
+      log(' '.join(line))
+    if not follow or follow in done or (deadline and time.time() > deadline):
+      break
+    time.sleep(5)
+  out['log'] = training_log(workdir) if os.path.exists(
+      os.path.join(workdir, 'metrics.jsonl')) else {'step': [], 'drop_rate': [], 'real_drop_rate': []}
   return out
 
 
@@ -105,10 +149,11 @@ def plot(results: dict, table: dict, path: str, title: str):
   import matplotlib.pyplot as plt
   fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
   for (name, r), color in zip(results.items(), plt.cm.tab10.colors):
-    for kind, style in (('trained', '-'), ('calibrated', ':')):
+    for kind, style in (('trained', '-'), ('calibrated', ':'), ('levels', '--')):
       for ax, key in zip(axes[:2], ('auc_near', 'auc_near_within_ring')):
-        ax.plot(r['step'], [x['placement'][key] for x in r[kind]], style, color=color, marker='o',
-                ms=3, label=f'{name} ({kind})')
+        if r.get(kind):
+          ax.plot(r['step'], [x['placement'][key] for x in r[kind]], style, color=color,
+                  marker='o', ms=3, label=f'{name} ({kind})')
     axes[2].plot(r['log']['step'], r['log']['drop_rate'], color=color, label=name)
   for ax, key, what in zip(axes[:2], ('auc_near', 'auc_near_within_ring'),
                            ('AUC, surfaces < 40 m', 'within-ring AUC, < 40 m')):
@@ -127,43 +172,65 @@ def plot(results: dict, table: dict, path: str, title: str):
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument('--runs', required=True, help='NAME=WORKDIR,... (training run directories)')
-  p.add_argument('--data-dir', required=True, help='the prepared simulated dataset the runs used')
+  p.add_argument('--runs', default='', help='NAME=WORKDIR,... (training run directories)')
+  p.add_argument('--data-dir', help='the prepared simulated dataset the runs used')
   p.add_argument('--split', default='val', choices=('val', 'test'))
   p.add_argument('--num', type=int, default=64, help='held-out scans inverted')
   p.add_argument('--steps', type=int, default=300, help='inversion iterations')
   p.add_argument('--every', type=int, default=0, help='only checkpoints at multiples of this')
   p.add_argument('--at', default='', help='only these checkpoint steps (comma-separated)')
+  p.add_argument('--forms', default=','.join(FORMS), help=f'of {", ".join(FORMS)}')
+  p.add_argument('--follow', type=int, default=0,
+                 help='wait for a run still training until this step is scored')
+  p.add_argument('--minutes', type=float, default=0, help='with --follow: stop waiting after this')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   p.add_argument('--name', default='placement_curve')
   p.add_argument('--title', default='drop placement over training')
+  p.add_argument('--plot-only', action='store_true', help='redraw NAME.png from NAME.json')
   a = p.parse_args(argv)
+  path = os.path.join(a.out, f'{a.name}.json')
+  if a.plot_only:
+    with open(path) as f:
+      record = json.load(f)
+    plot(record['runs'], record['ring_table'], path[:-5] + '.png', a.title)
+    return
+  if not a.runs or not a.data_dir:
+    p.error('--runs and --data-dir are needed (or --plot-only)')
+  import time
   from dusty_jax import evaluation
   from dusty_jax.data import arrays
+  from dusty_jax.metrics import ground_truth
   from dusty_jax.sensor import get_sensor
   with open(os.path.join(a.data_dir, 'meta.json')) as f:
     sensor = get_sensor(json.load(f)['sensor'])
   depth, complete, prob = (np.asarray(arrays.load_split(a.data_dir, a.split, sensor, k)[:a.num])
                            for k in ('', 'complete', 'drop_prob'))
+  train = np.asarray(arrays.load_split(a.data_dir, 'train', sensor)[:evaluation.RING_TABLE_SCANS])
   ring_keep = evaluation.training_ring_keep(a.data_dir, sensor)
-  results = {}
-  for item in [r for r in a.runs.split(',') if r]:
-    name, workdir = item.split('=', 1)
-    print(f'{name} ({workdir}):', flush=True)
-    at = tuple(int(s) for s in a.at.split(',') if s)
-    results[name] = run_curve(workdir, depth, (complete, prob), ring_keep, a.steps, a.every,
-                              lambda s: print(s, flush=True), at)
-  from dusty_jax.metrics import ground_truth
   table = ground_truth.ring_table_scores(sensor, ring_keep, depth, complete, prob)
   table.pop('reliability')
   os.makedirs(a.out, exist_ok=True)
   record = {'machine': common.machine(), 'split': a.split, 'num': a.num, 'steps': a.steps,
-            'ring_table': table, 'runs': results}
-  with open(os.path.join(a.out, f'{a.name}.json'), 'w') as f:
-    json.dump(record, f, indent=1)
-  plot(results, table, os.path.join(a.out, f'{a.name}.png'), a.title)
+            'ring_table': table, 'runs': {}}
+
+  def save(name, out):
+    record['runs'][name] = out
+    with open(path + '.tmp', 'w') as f:
+      json.dump(record, f, indent=1)
+    os.replace(path + '.tmp', path)
+
+  deadline = time.time() + 60 * a.minutes if a.minutes else 0.0
+  forms = tuple(f for f in a.forms.split(',') if f)
+  for item in [r for r in a.runs.split(',') if r]:
+    name, workdir = item.split('=', 1)
+    print(f'{name} ({workdir}):', flush=True)
+    at = tuple(int(s) for s in a.at.split(',') if s)
+    save(name, run_curve(workdir, depth, (complete, prob), ring_keep, a.steps, a.every,
+                         lambda s: print(s, flush=True), at, forms, train, a.follow, deadline,
+                         lambda out, name=name: save(name, out)))
+  plot(record['runs'], table, path[:-5] + '.png', a.title)
   print(f'per-ring table: AUC<40 {table["auc_near"]:.3f} within '
-        f'{table["auc_near_within_ring"]:.3f}; wrote {a.out}/{a.name}.json/.png')
+        f'{table["auc_near_within_ring"]:.3f}; wrote {path} and .png')
 
 
 if __name__ == '__main__':
