@@ -7,8 +7,10 @@ Each is one ``NAME.npz`` in this folder (numpy arrays only: loading runs no
 code): the EMA generator's variables under ``variables/...``, the angle
 table, and ``meta``, a JSON string of the sensor, the model settings, the
 tolerance and where the weights came from (generator.export writes them).
-They were trained by ``benchmarks/study.py`` on simulated HDL-64E scenes
-(see benchmarks/results/study.md), not on real data.
+They were trained on simulated HDL-64E scenes, not on real data: by
+``benchmarks/study.py`` (see benchmarks/results/study.md), and sim-dusty1 by
+the main command (experiments/synthetic.py) and its encoder; each file's
+``training`` record says which.
 """
 
 from __future__ import annotations

@@ -4,11 +4,12 @@ presets (dusty_jax.drops.PRESETS), as data.
 Each entry is the ``drops`` options a variant adds to configs.study's
 model (the suffix of its run name: ``dusty1_fardrops`` is DUSty-I with
 LINEAGE['fardrops']); each adds to the one before it, except the first.
-'dipdrops' and 'fardrops' are the presets 'dips' and 'far' of the library;
-the others lost on the study's figures (README.md in this folder). Options
-that left the library (configs.REMOVED_DROPS) train only at commit
-f597033, whose experiments/study_*.py files and configs.STUDY_DROPS built
-these configs. 'noaug' is DUSty-I without DiffAugment, a diagnosis run.
+'dipdrops' is the library's preset 'dips'; 'fardrops' was its preset 'far'
+until 2026-11-26; the others lost on the study's figures (README.md in this
+folder). Options that left the library (configs.REMOVED_DROPS) train only at
+the commit configs.LAST_WITH names (f597033, whose experiments/study_*.py
+files and configs.STUDY_DROPS built these configs; ca3bdad for the peak and
+far terms). 'noaug' is DUSty-I without DiffAugment, a diagnosis run.
 
     from lineage import config
     c = config('dusty1_detdrops')  # configs.study('dusty1') + LINEAGE['detdrops']
@@ -56,4 +57,4 @@ def config(run: str, scale: str = 'cpu'):
       raise configs.ConfigError(f'unknown lineage run {run!r}; known suffixes: noaug, '
                                 f'{", ".join(LINEAGE)}')
     c.drops.update(LINEAGE[suffix])
-  return configs.upgrade(c)  # refuses the removed options (commit f597033 has them)
+  return configs.upgrade(c)  # refuses the removed options (configs.LAST_WITH has them)

@@ -67,7 +67,10 @@ def training_log(workdir: str) -> dict:
   steps, rate, real = [], [], []
   with open(os.path.join(workdir, 'metrics.jsonl')) as f:
     for line in f:
-      m = json.loads(line)
+      try:
+        m = json.loads(line)
+      except json.JSONDecodeError:  # a line the training is writing now
+        continue
       if 'drop_rate' in m:
         steps.append(m['step']), rate.append(m['drop_rate']), real.append(m['real_drop_rate'])
   return {'step': steps, 'drop_rate': rate, 'real_drop_rate': real}
@@ -108,8 +111,8 @@ def run_curve(workdir: str, depth, truth, ring_keep, steps: int, every: int, log
               at=(), forms=FORMS, train_depth=None, follow: int = 0, deadline: float = 0.0,
               save=lambda out: None) -> dict:
   """Scores each kept checkpoint of ``workdir`` in each of ``forms``. With
-  ``follow`` > 0, waits for checkpoints of a run still training until step
-  ``follow`` is scored or time.time() passes ``deadline``; ``save(out)``
+  ``follow`` > 0, waits for checkpoints of a run still training until one
+  at or past step ``follow`` is listed, or time.time() passes ``deadline``; ``save(out)``
   is called after each checkpoint, so a cut-off run keeps what it scored."""
   import time
   from dusty_jax import checkpoint, generator
@@ -118,7 +121,8 @@ def run_curve(workdir: str, depth, truth, ring_keep, steps: int, every: int, log
   while True:
     mngr = checkpoint.manager(workdir, keep=100000) if os.path.isdir(
         os.path.join(workdir, 'checkpoints')) else None
-    todo = [s for s in sorted(mngr.all_steps() if mngr else [])
+    seen = sorted(mngr.all_steps()) if mngr else []
+    todo = [s for s in seen
             if s and s not in done and not (every and s % every) and not (at and s not in at)]
     for s in todo:
       done.add(s)
@@ -135,7 +139,7 @@ def run_curve(workdir: str, depth, truth, ring_keep, steps: int, every: int, log
       out['log'] = training_log(workdir)
       save(out)
       log(' '.join(line))
-    if not follow or follow in done or (deadline and time.time() > deadline):
+    if not follow or (seen and max(seen) >= follow) or (deadline and time.time() > deadline):
       break
     time.sleep(5)
   out['log'] = training_log(workdir) if os.path.exists(
@@ -182,7 +186,8 @@ def main(argv=None):
   p.add_argument('--forms', default=','.join(FORMS), help=f'of {", ".join(FORMS)}')
   p.add_argument('--follow', type=int, default=0,
                  help='wait for a run still training until this step is scored')
-  p.add_argument('--minutes', type=float, default=0, help='with --follow: stop waiting after this')
+  p.add_argument('--minutes', type=float, default=0,
+                 help='with --follow: stop waiting after this (0: wait until the step)')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   p.add_argument('--name', default='placement_curve')
   p.add_argument('--title', default='drop placement over training')

@@ -42,7 +42,7 @@ XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 timeout $(left) $PY -m dusty_jax.train \
 TRAIN=$!
 XLA_PYTHON_CLIENT_MEM_FRACTION=0.2 timeout $(left) $PY benchmarks/research/drops/placement_curve.py \
   --runs faithful=$W/faithful --data-dir "$D" --split val --num $NUM --steps $ISTEPS \
-  --every $CURVE --follow $STEPS --minutes $(( $(left) / 60 )) --out $OUT \
+  --every $CURVE --follow $STEPS --minutes $(echo "$(left) / 60" | bc -l) --out $OUT \
   --name placement_${SCALE}_val --title "faithful DUSty-I, $SCALE width: 64 validation scans" \
   > $OUT/curve.log 2>&1 &
 CURVE_PID=$!
