@@ -50,13 +50,6 @@ def synthesis_row(params, depth, num: int, points: int, seeds: int) -> dict:
   return {k: float(np.mean(v)) for k, v in row.items()}
 
 
-def sample_drop_rate(params, num: int = 256) -> float:
-  import jax
-  from dusty_jax import codec, sampling
-  scans = np.asarray(sampling.sample_scans(params, jax.random.key(11), num))
-  return float(np.mean(scans <= codec.ALPHA))
-
-
 def picture_rows(params, depth, steps: int):
   """The inverted measurability of each of the scans ``depth``."""
   from dusty_jax import evaluation
@@ -137,7 +130,7 @@ def main(argv=None):
         continue
       r = placement_curve.score(model, depth, (complete, prob), ring_keep, a.steps)
       r['synthesis'] = synthesis_row(model, split, a.synthesis, a.points, a.seeds)
-      r['sample_drop_rate'] = sample_drop_rate(model)
+      r['sample_drop_rate'] = placement_curve.sample_drop_rate(model)
       results[f'{name} ({form})'] = r
       m, s = r['placement'], r['synthesis']
       print(f'{name} ({form}): AUC<40 {m["auc_near"]:.3f} within '
