@@ -143,7 +143,8 @@ def test_direct_embree_equals_trimesh_embree(seed, kind):
 @needs_embree
 def test_direct_embree_first_hits_small_mesh():
   """Misses, a degenerate face and a mesh away from the origin: the same
-  (tri, ray, location) as ray_pyembree, and trimesh's face normals."""
+  (tri, ray, location) as ray_pyembree, the hit faces' normals as
+  trimesh's face normals, and face_normals as trimesh's (0 where degenerate)."""
   import trimesh
   box = trimesh.creation.box(extents=(2.0, 3.0, 1.0))
   v = np.concatenate([box.vertices + [10.0, 1.0, 0.2], [[5, 0, 0], [5, 0, 0], [5, 0, 0]]])
@@ -160,8 +161,11 @@ def test_direct_embree_first_hits_small_mesh():
   for a, b in zip((tri, ray, loc), ref):
     assert a.tobytes() == np.asarray(b).tobytes()
   assert 0 < len(ray) < len(d)
-  assert normals.tobytes() == mesh.face_normals.tobytes()
-  assert (normals[-1] == 0).all()
+  assert normals.tobytes() == mesh.face_normals[tri].tobytes()
+  assert len(np.unique(tri)) > 1
+  every = embree.face_normals(mesh.vertices.view(np.ndarray), mesh.faces.view(np.ndarray))
+  assert every.tobytes() == mesh.face_normals.tobytes()
+  assert (every[-1] == 0).all()
 
 
 def test_scene_builder_equals_parts_one_at_a_time():

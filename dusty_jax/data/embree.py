@@ -176,9 +176,10 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, rays: Rays):
   Returns ``(index_tri, index_ray, locations, normals)``: what
   ``ray_pyembree.RayMeshIntersector(mesh).intersects_id(zeros, directions,
   multiple_hits=False, return_locations=True)`` returns for the same
-  directions, bit for bit, and the
-  mesh's face normals. Raises RuntimeError where Embree cannot be called
-  (see :func:`available`).
+  directions, bit for bit, and the face normal of each hit (trimesh's
+  ``face_normals[index_tri]``, computed for the hit faces only: a scene's
+  rays hit a few hundred of its ~12,000 faces). Raises RuntimeError where
+  Embree cannot be called (see :func:`available`).
   """
   api = _api(os.getpid())
   if api is None:
@@ -232,10 +233,11 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, rays: Rays):
   index_tri = prim[hit].astype(np.int64)
   # ray_pyembree.intersects_id, first pass: hit points on the faces' planes,
   # rays nearly parallel to their face dropped.
-  normals = face_normals(vertices, faces)
+  hit_faces, which = np.unique(index_tri, return_inverse=True)
+  normals = face_normals(vertices, faces[hit_faces])[which]
   locations, ok = intersections.planes_lines(
       plane_origins=vertices[faces[index_tri, 0]],
-      plane_normals=normals[index_tri],
+      plane_normals=normals,
       line_origins=np.zeros((len(index_ray), 3)),
       line_directions=rays.unit[index_ray])
-  return index_tri[ok], index_ray[ok], locations, normals
+  return index_tri[ok], index_ray[ok], locations, normals[ok]

@@ -80,8 +80,9 @@ def _embree_rays(sensor: SensorSpec) -> embree.Rays:
 
 
 def first_hits(mesh, sensor: SensorSpec, raycaster: str | None = None):
-  """(index_tri, index_ray, locations, face normals) of each pixel's ray's
-  first hit on ``mesh``; rays that hit nothing are left out."""
+  """(index_tri, index_ray, locations, normals) of each pixel's ray's first
+  hit on ``mesh``, ``normals`` the hit faces' normals; rays that hit nothing
+  are left out."""
   raycaster = raycaster or default_raycaster()
   if raycaster not in RAYCASTERS:
     raise ValueError(f'unknown raycaster {raycaster!r}; known: {RAYCASTERS}')
@@ -91,7 +92,7 @@ def first_hits(mesh, sensor: SensorSpec, raycaster: str | None = None):
   dirs = _flat_directions(sensor)
   tri, ray, loc = intersector(mesh, raycaster == 'pyembree').intersects_id(
       np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True)
-  return tri, ray, loc, mesh.face_normals
+  return tri, ray, loc, mesh.face_normals[tri]
 
 
 def intersector(mesh, use_embree: bool | None = None):
@@ -135,14 +136,14 @@ def render_scan(seed: int, sensor: SensorSpec, kind: str | None = None,
   of RAYCASTERS, default the fastest available)."""
   mesh, material, info = scene.build_scene(seed, kind, sensor.mount_height)
   dirs = _flat_directions(sensor)
-  tri, ray, loc, normals = first_hits(mesh, sensor, raycaster)
+  tri, ray, loc, hit_normals = first_hits(mesh, sensor, raycaster)
   n = len(dirs)
   dist = np.full(n, np.inf)
   mat = np.full(n, -1, np.int64)
   cos_inc = np.zeros(n)
   dist[ray] = np.linalg.norm(loc, axis=1)
   mat[ray] = material[tri]
-  cos_inc[ray] = np.abs(np.einsum('ij,ij->i', normals[tri], dirs[ray]))
+  cos_inc[ray] = np.abs(np.einsum('ij,ij->i', hit_normals, dirs[ray]))
   hit = mat >= 0
   p_drop = drop_probability(hit, dist, cos_inc, mat, sensor)
   rng = np.random.default_rng((seed, 1))
