@@ -53,7 +53,7 @@ import optax
 import tqdm
 from flax import traverse_util
 
-from dusty_jax import checkpoint, corrupt, layers, xla_cache
+from dusty_jax import checkpoint, corrupt, layers, parallel, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.models import EqualConv, check_shape
 
@@ -286,13 +286,19 @@ def train(params, directory: str, opts: TrainOptions = TrainOptions(), real=None
   ``real``: the run's training scans (N, H, W), normalised inverse depth, for
   the real-scan term (None: G's samples only; needs ``opts.w_real == 0``).
   Checkpoints into ``directory`` every SAVE_EVERY steps and at the end; a
-  call on the same directory resumes there (with the same options).
-  Returns (variables, info): info holds the steps, the options and the last
-  step's loss terms.
+  call on the same directory resumes there (with the same options). Holds
+  ``directory`` alone while it runs (parallel.hold_workdir): a second
+  training there is refused, naming the first. Returns (variables, info):
+  info holds the steps, the options and the last step's loss terms.
   """
   if real is None and opts.w_real > 0:
     raise ValueError(f'w_real={opts.w_real}: the real-scan term needs the training '
                      'scans (real=), or give w_real=0')
+  with parallel.hold_workdir(directory):
+    return _train(params, directory, opts, real, settings, progress)
+
+
+def _train(params, directory, opts, real, settings, progress):
   params = params.replace(encoder=None, encoder_settings=None)
   check_options(directory, opts)
   k_init, key = jax.random.split(jax.random.key(opts.seed))

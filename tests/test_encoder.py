@@ -144,6 +144,19 @@ def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):
   np.testing.assert_array_equal(old.angles, back.angles)
 
 
+def test_a_second_encoder_training_on_one_folder_is_refused(trained):
+  """Two encoder trainings on one run would write each other's checkpoints:
+  the second is refused, naming the holder, and the folder is left as it was."""
+  from dusty_jax import parallel
+  folder = os.path.join(trained, encoder.DIRECTORY)
+  before = sorted(os.listdir(folder))
+  params, _ = dusty_jax.load_checkpoint(trained)
+  with parallel.hold_workdir(folder):
+    with pytest.raises(parallel.WorkdirInUse, match=f'{folder} is in use.*pid {os.getpid()}'):
+      encoder.train(params, folder, encoder.TrainOptions(steps=3, batch=4, w_real=0))
+  assert sorted(os.listdir(folder)) == before
+
+
 def test_bad_inputs_get_clear_errors(smoke_run, trained, tmp_path):
   plain, _ = dusty_jax.load_checkpoint(smoke_run[1])
   scan = np.asarray(sampling.sample(plain, jax.random.key(0), 1)['scan'][0])
