@@ -256,7 +256,7 @@ def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, axis_name=None, keep
 # ----------------------------------------------------------------------------
 
 
-def diagnostics(sensor: SensorSpec, scan, mask, real, axis_name=None) -> dict:
+def diagnostics(scan, mask, real, axis_name=None) -> dict:
   """The drop metrics of one step: of the generated ``scan`` (B, H, W) with
   its keep-``mask``, and of the ``real`` scans (drops at or below ALPHA)."""
   return dict(

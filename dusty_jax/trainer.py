@@ -286,7 +286,7 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
                                    fake, fake_vjp, kag, axis_name, real)
   ema = ema_update(state.ema_params, g_params, ema_decay(setup, state.step))
   metrics = dict(d_metrics, loss_g=loss_g,
-                 **drops.diagnostics(setup.sensor, fake.scan, mask, batch, axis_name))
+                 **drops.diagnostics(fake.scan, mask, batch, axis_name))
   metrics = lax.pmean(metrics, axis_name)
   new_state = state.replace(step=state.step + 1, g_params=g_params,
                             d_params=d_params, g_opt=g_opt, d_opt=d_opt,
