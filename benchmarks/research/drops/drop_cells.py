@@ -1,7 +1,7 @@
 """Where a generator's own samples drop points: keep rate by ring and depth.
 
     python benchmarks/research/drops/drop_cells.py [--models sim-dusty1,sim-dusty1-authors,...]
-        [--runs NAME=RUN_DIR,...] [--num 512]
+        [--runs NAME=RUN_DIR|NAME=FILE.npz,...] [--num 512]
 
 drop_oracles.py scores measurability through inversion of held-out scans,
 which mixes two things: the depth the search recovers and the head. This
@@ -118,7 +118,8 @@ def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument('--models', default='sim-dusty1,sim-dusty1-authors,sim-dusty2',
                  help='load_pretrained names')
-  p.add_argument('--runs', default='', help='NAME=RUN_DIR,...: trained runs (their EMA)')
+  p.add_argument('--runs', default='',
+                 help='NAME=RUN_DIR or NAME=FILE.npz,...: trained runs (their EMA), exported generators')
   p.add_argument('--num', type=int, default=512, help='samples per model')
   p.add_argument('--min-pixels', type=int, default=200, help='pixels a cell needs, each side')
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'drop_cells.json'))
@@ -129,7 +130,11 @@ def main(argv=None):
       if '=' not in item:
         raise ValueError(f'--runs {item!r}: expected NAME=RUN_DIR')
       name, run = item.split('=', 1)
-      models[name] = dusty_jax.load_checkpoint(run)[0]
+      if run.endswith('.npz'):  # an exported generator (generator.export)
+        from dusty_jax import generator
+        models[name] = generator.load_file(run)
+      else:
+        models[name] = dusty_jax.load_checkpoint(run)[0]
   except (OSError, ValueError) as e:
     raise SystemExit(f'error: {e}') from None
   common.print_banner()
