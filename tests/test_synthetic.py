@@ -248,21 +248,27 @@ def test_synthesize_tool(tmp_path, capsys):
     synthesize.main(['--num', '0', '--out', out])
 
 
-def test_a_main_read_from_stdin_simulates_in_process(tiny, tmp_path):
-  """A spawned worker cannot import a main module read from stdin (its pool
-  would respawn failing workers for ever): such a caller gets its scans from
-  this process, and the same scans."""
+def test_spawned_workers_import_no_main_module(tiny, tmp_path):
+  """With JAX loaded the workers are spawned; they import simulated_lidar,
+  not the caller's main module (a trainer's, with JAX; or one read from
+  stdin, which a worker could not import): two workers give the scans of one
+  process, and the main module's top-level code runs once."""
   import subprocess
   import sys
-  code = ('import jax, numpy as np\n'  # JAX loaded: the pool would spawn
-          'from dusty_jax.data import synthetic\n'
-          'from dusty_jax.sensor import tiny_sensor\n'
-          'o, _, _ = synthetic.simulate(3, tiny_sensor(16, 64), seed=5, progress=False,'
+  code = ('import jax, numpy as np\n'  # JAX loaded: the pool spawns
+          'print("main ran", flush=True)\n'
+          'if __name__ == "__main__":\n'
+          '  from dusty_jax.data import synthetic\n'
+          '  from dusty_jax.sensor import tiny_sensor\n'
+          '  o, _, _ = synthetic.simulate(20, tiny_sensor(16, 64), seed=5, progress=False,'
           ' workers=2)\n'
-          'np.save("out.npy", o)\n')
-  proc = subprocess.run([sys.executable, '-'], input=code, text=True, capture_output=True,
-                        cwd=tmp_path, timeout=300)
-  assert proc.returncode == 0, proc.stderr
-  assert 'simulating in this process' in proc.stderr
-  want, _, _ = synthetic.simulate(3, tiny, seed=5, progress=False)
-  np.testing.assert_array_equal(np.load(tmp_path / 'out.npy'), want)
+          '  np.save("out.npy", o)\n')
+  (tmp_path / 'main.py').write_text(code)
+  want, _, _ = synthetic.simulate(20, tiny, seed=5, progress=False)
+  for args in ([sys.executable, '-'], [sys.executable, 'main.py']):
+    proc = subprocess.run(args, input=code, text=True, capture_output=True, cwd=tmp_path,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count('main ran') == 1, (args, proc.stdout)
+    np.testing.assert_array_equal(np.load(tmp_path / 'out.npy'), want)
+    os.remove(tmp_path / 'out.npy')

@@ -12,6 +12,7 @@ import contextlib
 import multiprocessing
 import os
 import sys
+import types
 
 import numpy as np
 import tqdm
@@ -31,31 +32,33 @@ def _rendered(jobs: list, workers: int):
 
   They are forked where JAX is not loaded and spawned where it is (forking a
   process that runs JAX's threads can deadlock). A spawned worker imports
-  simulated_lidar (trimesh, not JAX) and the parent's main module.
+  simulated_lidar (trimesh, not JAX) and nothing else: not the parent's main
+  module, which under ``python -m dusty_jax.train`` would load the trainer
+  and JAX into every worker (1.5 s more to start two), and which a main read
+  from stdin could not give it at all.
   """
-  method = 'spawn' if 'jax' in sys.modules else 'fork'
-  if workers > 1 and method == 'spawn' and not _main_importable():
-    print('simulating in this process: a main module read from stdin cannot be '
-          'imported by worker processes; run a script file for parallel workers',
-          file=sys.stderr)
-    workers = 1
   if workers <= 1 or len(jobs) <= 1:
     yield map(simulated_lidar.render_arrays, jobs)
     return
-  with multiprocessing.get_context(method).Pool(workers) as pool:
+  if 'jax' in sys.modules:
+    with _without_main():  # the workers start here, in Pool()
+      pool = multiprocessing.get_context('spawn').Pool(workers)
+  else:
+    pool = multiprocessing.get_context('fork').Pool(workers)
+  with pool:
     yield pool.imap(simulated_lidar.render_arrays, jobs, chunksize=_CHUNK)
 
 
-def _main_importable() -> bool:
-  """Whether a spawned worker can import the main module, as
-  multiprocessing's spawn does (by name, or from its file): a main read
-  from stdin cannot be, and such a pool respawns its failing workers for
-  ever."""
-  main = sys.modules.get('__main__')
-  if getattr(getattr(main, '__spec__', None), 'name', None):
-    return True
-  path = getattr(main, '__file__', None)
-  return path is None or os.path.isfile(path)
+@contextlib.contextmanager
+def _without_main():
+  """While it lasts, ``__main__`` is an empty module: what a process spawned
+  then is told to import as its main (multiprocessing.spawn)."""
+  main = sys.modules['__main__']
+  sys.modules['__main__'] = types.ModuleType('__main__')
+  try:
+    yield
+  finally:
+    sys.modules['__main__'] = main
 
 
 def _jobs(num: int, sensor: SensorSpec, seed: int) -> list:
