@@ -233,8 +233,10 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, rays: Rays):
   index_tri = prim[hit].astype(np.int64)
   # ray_pyembree.intersects_id, first pass: hit points on the faces' planes,
   # rays nearly parallel to their face dropped.
-  hit_faces, which = np.unique(index_tri, return_inverse=True)
-  normals = face_normals(vertices, faces[hit_faces])[which]
+  hit_faces = np.flatnonzero(np.bincount(index_tri, minlength=len(faces)))
+  slot = np.empty(len(faces), np.int64)
+  slot[hit_faces] = np.arange(len(hit_faces))
+  normals = face_normals(vertices, faces[hit_faces])[slot[index_tri]]
   locations, ok = intersections.planes_lines(
       plane_origins=vertices[faces[index_tri, 0]],
       plane_normals=normals,
