@@ -87,6 +87,22 @@ def test_shipped_sim_dusty1_keeps_and_places_its_drops():
   assert training['drops'] == dict(configs.drop_defaults().to_dict(), depth_levels=True)
   assert 'train_encoder' in training['encoder']
   assert pretrained.describe('sim-dusty1-authors').get('training') is None
+  # The main command's config today still trains this model: same network,
+  # schedule, batch, seed, augmentation and drops.
+  import importlib.util
+  import os
+  path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                      training['config'])
+  spec = importlib.util.spec_from_file_location('main_config', path)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  config = module.get_config()
+  settings = dusty_jax.load_pretrained('sim-dusty1').settings
+  assert (config.model, config.latent_dim, config.ch_base, config.ch_max) == (
+      settings.model, settings.latent_dim, settings.ch_base, settings.ch_max)
+  assert (config.num_steps, config.batch_size, config.seed, config.augment) == (
+      training['steps'], training['batch_size'], training['seed'], training['augment'])
+  assert config.drops.to_dict() == training['drops']
   rates = {}
   for name in ('sim-dusty1', 'sim-dusty1-authors'):
     out = dusty_jax.sample(dusty_jax.load_pretrained(name), jax.random.key(0), 16)
