@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import shutil
 
 import jax
@@ -152,7 +153,8 @@ def test_a_second_encoder_training_on_one_folder_is_refused(trained):
   before = sorted(os.listdir(folder))
   params, _ = dusty_jax.load_checkpoint(trained)
   with parallel.hold_workdir(folder):
-    with pytest.raises(parallel.WorkdirInUse, match=f'{folder} is in use.*pid {os.getpid()}'):
+    with pytest.raises(parallel.WorkdirInUse,
+                       match=f'{re.escape(folder)} is in use.*pid {os.getpid()}'):
       encoder.train(params, folder, encoder.TrainOptions(steps=3, batch=4, w_real=0))
   assert sorted(os.listdir(folder)) == before
 

@@ -141,7 +141,7 @@ def test_direct_embree_equals_trimesh_embree(seed, kind):
 
 
 @needs_embree
-def test_direct_embree_first_hits_small_mesh():
+def test_direct_embree_first_hits_small_mesh(monkeypatch):
   """Misses, a degenerate face and a mesh away from the origin: the same
   (tri, ray, location) as ray_pyembree, the hit faces' normals as
   trimesh's face normals, and face_normals as trimesh's (0 where degenerate)."""
@@ -163,6 +163,21 @@ def test_direct_embree_first_hits_small_mesh():
   assert 0 < len(ray) < len(d)
   assert normals.tobytes() == mesh.face_normals[tri].tobytes()
   assert len(np.unique(tri)) > 1
+  # Hits that trimesh drops (a ray nearly parallel to its face) leave with
+  # their normals: drop every other one as planes_lines would.
+  planes_lines = embree.intersections.planes_lines
+
+  def dropping(**kw):
+    loc, ok = planes_lines(**kw)
+    drop = np.zeros_like(ok)
+    drop[::2] = True
+    return loc[~drop[ok]], ok & ~drop
+
+  monkeypatch.setattr(embree.intersections, 'planes_lines', dropping)
+  tri2, ray2, loc2, normals2 = embree.first_hits(mesh.vertices.view(np.ndarray),
+                                                 mesh.faces.view(np.ndarray), rays)
+  assert 0 < len(tri2) < len(tri) and np.array_equal(ray2, ray[1::2])
+  assert normals2.tobytes() == mesh.face_normals[tri2].tobytes() == normals[1::2].tobytes()
   every = embree.face_normals(mesh.vertices.view(np.ndarray), mesh.faces.view(np.ndarray))
   assert every.tobytes() == mesh.face_normals.tobytes()
   assert (every[-1] == 0).all()
@@ -258,6 +273,12 @@ def test_spawned_workers_import_no_main_module(tiny, tmp_path):
   code = ('import jax, numpy as np\n'  # JAX loaded: the pool spawns
           'print("main ran", flush=True)\n'
           'if __name__ == "__main__":\n'
+          '  import multiprocessing.pool\n'
+          '  start = multiprocessing.pool.Pool.__init__\n'
+          '  def started(self, *a, **k):\n'
+          '    print("pool of", a[0] if a else k.get("processes"), flush=True)\n'
+          '    start(self, *a, **k)\n'
+          '  multiprocessing.pool.Pool.__init__ = started\n'
           '  from dusty_jax.data import synthetic\n'
           '  from dusty_jax.sensor import tiny_sensor\n'
           '  o, _, _ = synthetic.simulate(20, tiny_sensor(16, 64), seed=5, progress=False,'
@@ -265,10 +286,13 @@ def test_spawned_workers_import_no_main_module(tiny, tmp_path):
           '  np.save("out.npy", o)\n')
   (tmp_path / 'main.py').write_text(code)
   want, _, _ = synthetic.simulate(20, tiny, seed=5, progress=False)
-  for args in ([sys.executable, '-'], [sys.executable, 'main.py']):
+  # The file first: workers that imported it would print again at once; a
+  # stdin main they cannot import at all (their pool would respawn them).
+  for args in ([sys.executable, 'main.py'], [sys.executable, '-']):
     proc = subprocess.run(args, input=code, text=True, capture_output=True, cwd=tmp_path,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.count('main ran') == 1, (args, proc.stdout)
+    assert 'pool of 2' in proc.stdout, (args, proc.stdout)
     np.testing.assert_array_equal(np.load(tmp_path / 'out.npy'), want)
     os.remove(tmp_path / 'out.npy')

@@ -52,7 +52,10 @@ def _rendered(jobs: list, workers: int):
 @contextlib.contextmanager
 def _without_main():
   """While it lasts, ``__main__`` is an empty module: what a process spawned
-  then is told to import as its main (multiprocessing.spawn)."""
+  then is told to import as its main (multiprocessing.spawn). The workers'
+  tasks and results name nothing in ``__main__``. A worker that the pool
+  starts later, in place of one that crashed, imports the real main; the
+  crashed worker's task is lost then anyway (Pool.imap waits for it)."""
   main = sys.modules['__main__']
   sys.modules['__main__'] = types.ModuleType('__main__')
   try:

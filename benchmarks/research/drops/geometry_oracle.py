@@ -15,8 +15,8 @@ depth (what a perfect generator would draw), scored on ``--num`` scans of
     (what the levels fit per cell);
   * ``ring x depth x incidence``: also by the cosine of the incidence angle,
     from the surface normal of the depth image's 3-D points (central
-    differences), with pixels on a depth edge (a neighbour without a return
-    or more than 10 % away) in a bin of their own;
+    differences), with pixels on a depth edge (a neighbour without a return,
+    or one in the same ring more than 10 % away) in a bin of their own;
   * ``truth``: the simulator's keep probability (its material is what depth
     cannot see: glass, paint, foliage).
 
@@ -58,12 +58,17 @@ def incidence_bins(depth, sensor):
   norm = np.linalg.norm(n, axis=-1)
   cos = np.abs(np.einsum('bhwk,hwk->bhw', n, dirs)) / np.maximum(norm, 1e-12)
   bins = np.digitize(cos, COS_EDGES)
-  near = [np.roll(depth, s, axis=2) for s in (-1, 1)]
-  near += [np.concatenate([depth[:, :1], depth[:, :-1]], 1),
-           np.concatenate([depth[:, 1:], depth[:, -1:]], 1)]
-  edge = (norm == 0)
-  for q in near:
-    edge |= (q <= 0) | (np.abs(q - depth) > EDGE_JUMP * depth)
+  along = [np.roll(depth, s, axis=2) for s in (-1, 1)]
+  across = [np.concatenate([depth[:, :1], depth[:, :-1]], 1),
+            np.concatenate([depth[:, 1:], depth[:, -1:]], 1)]
+  # A depth edge: a neighbour without a return, or a step along the ring
+  # (across rings, ground seen at a grazing angle steps by more than 10 %
+  # beyond about 25 m: that is the incidence the bins are for).
+  edge = (norm == 0) | (depth <= 0)
+  for q in along + across:
+    edge |= q <= 0
+  for q in along:
+    edge |= np.abs(q - depth) > EDGE_JUMP * depth
   edge[:, 0] = edge[:, -1] = True
   return np.where(edge, len(COS_EDGES) + 1, bins)
 
