@@ -88,7 +88,8 @@ def main(argv=None):
   p.add_argument('--seeds', type=int, default=2)
   p.add_argument('--forms', default='as shipped,rings,levels',
                  help="of each model: 'as shipped', 'rings' (one offset per ring, "
-                      "placement_curve.calibrate_rings), 'levels' (dusty_jax.levels.calibrate)")
+                      "placement_curve.calibrate_rings), 'levels' (dusty_jax.levels.calibrate), "
+                      "'cells' (the same without its ring pass: rings=False)")
   p.add_argument('--picture', type=int, default=0,
                  help='also draw the measurability of this many scans (NAME.png)')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
@@ -118,7 +119,8 @@ def main(argv=None):
           'without levels': lambda p: (levels.with_levels(p, -p.variables['params']['depth_levels'])
                                        if p.settings.depth_levels else p),
           'rings': lambda p: placement_curve.calibrate_rings(p, ring_keep),
-          'levels': lambda p: levels.calibrate(p, train)}
+          'levels': lambda p: levels.calibrate(p, train),
+          'cells': lambda p: levels.calibrate(p, train, rings=False)}
   results, shown = {}, {}
   for item in [m for m in a.models.split(',') if m]:
     name, params = load(item)
