@@ -150,7 +150,7 @@ def encode(params, scans, impl: str | None = None):
   return _encode(params, scans, impl)
 
 
-@functools.partial(jax.jit, static_argnames=('impl',))
+@xla_cache.jit(static_argnames=('impl',))
 def _encode(params, scans, impl):
   return project(module(params, impl).apply(params.encoder, scans))
 

@@ -16,7 +16,6 @@ to its eps), so the search follows the same path.
 
 from __future__ import annotations
 
-import functools
 import warnings
 
 import jax
@@ -132,15 +131,24 @@ def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
   return z, loss_fn(z)
 
 
-@functools.partial(jax.jit, static_argnames=('start',))
-def _start(params, scans, masks, z0, keys, start):
-  """Where each search starts: ``start`` a name in STARTS, or None for the
-  given latents ``z0`` (projected). Apart from the search, so that a new
-  start compiles this small program only."""
-  return project(z0) if start is None else STARTS[start](params, scans, masks, keys)
+@xla_cache.jit(static_argnames=('start',),
+               exportable=lambda start: start is None or STARTS.get(start) in (
+                   random_start, encoder_start))
+def _start(params, scan, mask, key, z0, start):
+  """What a search starts from: the target scans (drops at ALPHA), their
+  masks, one key per scan and the starting latents (``start`` a name in
+  STARTS, or None for the given ``z0``, projected). One small program apart
+  from the search, so that a new start compiles only this."""
+  masks = target_mask(scan, mask)
+  scans = jnp.where(jnp.isfinite(scan), scan, ALPHA)
+  if key.ndim == 0:
+    key = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(len(scans)))
+  z0 = project(z0) if start is None else STARTS[start](params, scans, masks, key)
+  return scans, masks, key, z0
 
 
-@functools.partial(jax.jit, static_argnames=('impl', 'loss'))
+@xla_cache.jit(static_argnames=('impl', 'loss'),
+               exportable=lambda impl, loss: loss is objective)
 def _search(params, scans, masks, z0, keys, num_steps, lr, impl, loss):
   """The searches from ``z0`` and their re-rendered results. ``num_steps``
   and ``lr`` are traced: one compilation serves every step count."""
@@ -256,29 +264,29 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
                      f'{hw}: expected {hw} or (B,) + {hw}')
   if not isinstance(scan, jax.core.Tracer):
     _warn_if_not_encoded(np.asarray(scan), single)
-  masks = target_mask(scan, mask)
-  scans = jnp.where(jnp.isfinite(scan), scan, ALPHA)
-  if not isinstance(masks, jax.core.Tracer):
-    empty = np.flatnonzero(~np.asarray(masks.any(axis=(1, 2))))
-    if empty.size:
-      warnings.warn(f'scans {empty.tolist()} have no valid pixel: nothing to '
-                    'fit, their result is the initial latent', stacklevel=2)
   key = sampling.as_key(key)
-  if key.shape == (len(scans),):
-    keys = key
-  elif key.shape == ():
-    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(len(scans)))
-  else:
-    raise ValueError(f'key: expected one key or {len(scans)} keys, got shape '
+  if key.shape not in ((), (len(scan),)):
+    raise ValueError(f'key: expected one key or {len(scan)} keys, got shape '
                      f'{key.shape}')
   if single and not isinstance(init, str):
     init = jnp.asarray(init)[None]
-  start, z0 = _check_init(params, init, len(scans))
-  z0 = _start(params, scans, masks, z0, keys, start)
-  out = _search(params, scans, masks, z0, keys, jnp.int32(num_steps), lr, impl, loss)
-  if single:
-    out = jax.tree.map(lambda v: v[0], out)
-  return out
+  start, z0 = _check_init(params, init, len(scan))
+  if mask is not None:
+    mask = jnp.asarray(mask)
+  scans, masks, keys, z0 = _start(params, scan, mask, key, z0, start)
+  if not isinstance(masks, jax.core.Tracer):
+    empty = np.flatnonzero(~np.asarray(masks).any(axis=(1, 2)))
+    if empty.size:
+      warnings.warn(f'scans {empty.tolist()} have no valid pixel: nothing to '
+                    'fit, their result is the initial latent', stacklevel=2)
+  out = _search(params, scans, masks, z0, keys, np.int32(num_steps), lr, impl, loss)
+  return _first(out) if single else out
+
+
+@jax.jit
+def _first(out):
+  """The results of a batch of one, without the batch axis."""
+  return jax.tree.map(lambda v: v[0], out)
 
 
 def render_drops(params: GeneratorParams, scan, *, key=None,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +35,7 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   return _generate(params, z, key, train, impl)
 
 
-@functools.partial(jax.jit, static_argnames=('train', 'impl'))
+@xla_cache.jit(static_argnames=('train', 'impl'))
 def _generate(params, z, key, train, impl):
   raw = params.module(impl).apply(params.variables, z)
   out = params.variant.compose(raw, key, params.tau, train)
@@ -84,7 +83,7 @@ def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   return _sample(params, key, int(num), impl)
 
 
-@functools.partial(jax.jit, static_argnames=('num', 'impl'))
+@xla_cache.jit(static_argnames=('num', 'impl'))
 def _sample(params, key, num, impl):
   kz, kmask = jax.random.split(key)
   z = jax.random.normal(kz, (num, params.latent_dim))

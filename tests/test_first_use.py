@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -74,6 +75,101 @@ def test_the_cache_is_off_when_asked_and_a_users_own_is_kept(tmp_path):
                             'JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS': '3'}).split()
   assert kept[0] == own and kept[2] == own and float(kept[3]) == 3
   assert not (tmp_path / 'xla').exists()
+
+
+def _affine(x, scale, how):
+  return x * scale + (1.0 if how == 'plus' else -1.0)
+
+
+def _raise(*args, **kwargs):
+  raise AssertionError('traced and exported again')
+
+
+def test_a_traced_program_is_kept_and_read_back(tmp_path, monkeypatch):
+  monkeypatch.setenv('DUSTY_JAX_CACHE', str(tmp_path))
+  kept = tmp_path / 'export'
+  fn = xla_cache.jit(_affine, static_argnames=('how',))
+  x = jnp.arange(4.0)
+  np.testing.assert_array_equal(fn(x, 2.0, 'plus'), x * 2 + 1)
+  (written,) = os.listdir(kept)
+  assert written.startswith('test_first_use._affine-')
+  # A new wrapper (what a new process has) reads the file instead of tracing.
+  real_export = jax.export.export
+  monkeypatch.setattr(jax.export, 'export', _raise)
+  again = xla_cache.jit(_affine, static_argnames=('how',))
+  np.testing.assert_array_equal(again(x, 2.0, how='plus'), x * 2 + 1)
+  assert len(again.programs) == 1 and os.listdir(kept) == [written]
+  # Inside traced code it inlines, as jax.jit does: nothing is read or kept.
+  np.testing.assert_array_equal(jax.jit(lambda y: again(y, 3.0, 'minus'))(x), x * 3 - 1)
+  assert len(again.programs) == 1
+  # A torn file is traced again and rewritten.
+  monkeypatch.setattr(jax.export, 'export', real_export)
+  (kept / written).write_bytes(b'torn')
+  torn = xla_cache.jit(_affine, static_argnames=('how',))
+  np.testing.assert_array_equal(torn(x, 2.0, 'plus'), x * 2 + 1)
+  assert (kept / written).stat().st_size > 100
+  # A new shape, dtype or static argument is another program, in its own file.
+  fn(jnp.arange(5.0), 2.0, 'plus')
+  fn(jnp.arange(4), 2, 'plus')
+  fn(x, 2.0, 'minus')
+  assert len(os.listdir(kept)) == 4
+  # Calls the predicate refuses are traced each process, never kept.
+  only_plus = xla_cache.jit(_affine, static_argnames=('how',),
+                            exportable=lambda how: how == 'plus')
+  np.testing.assert_array_equal(only_plus(x, 1.0, 'minus'), x - 1)
+  assert not only_plus.programs and len(os.listdir(kept)) == 4
+  # Files an older dusty_jax source wrote go when a new one is written.
+  stale = kept / 'test_first_use._affine-000000000000-0.jaxexport'
+  stale.write_bytes(b'old')
+  fn(jnp.arange(6.0), 2.0, 'plus')
+  assert not stale.exists() and len(os.listdir(kept)) == 5
+
+
+def test_kept_programs_are_off_with_the_cache(tmp_path, monkeypatch):
+  monkeypatch.setitem(xla_cache._state, 'done', True)
+  monkeypatch.setitem(xla_cache._state, 'directory', None)  # as with ..._CACHE=0
+  monkeypatch.setenv('DUSTY_JAX_CACHE', str(tmp_path))
+  fn = xla_cache.jit(_affine, static_argnames=('how',))
+  np.testing.assert_array_equal(fn(jnp.arange(3.0), 2.0, 'plus'), jnp.arange(3.0) * 2 + 1)
+  assert not fn.programs and not (tmp_path / 'export').exists()
+
+
+# invert() of one scan in a process of its own: 'write' (cache empty), 'read'
+# (jax.export unusable: the search must come from the file) or 'off'.
+_INVERT = """
+import sys
+import jax, numpy as np
+import dusty_jax
+from dusty_jax import codec, inversion
+from dusty_jax.data import simulated_lidar
+mode, out = sys.argv[1:]
+if mode == 'read':
+  jax.export.export = None
+params = dusty_jax.load_pretrained('sim-dusty1')
+scan = codec.encode(simulated_lidar.render_scan(7, params.sensor).depth, params.sensor)
+res = dusty_jax.invert(params, scan, num_steps=3)
+np.save(out, np.asarray(res['inv_depth']))
+print(len(inversion._start.programs), len(inversion._search.programs))
+"""
+
+
+def test_a_second_process_inverts_from_the_kept_program_bit_for_bit(tmp_path):
+  env = dict(os.environ, XLA_FLAGS=FAST_COMPILE, PYTHONPATH=os.path.abspath(REPO),
+             DUSTY_JAX_CACHE=str(tmp_path))
+  kept = {}
+  for mode in ('write', 'read', 'off'):
+    if mode == 'off':
+      env['DUSTY_JAX_COMPILATION_CACHE'] = '0'
+    r = subprocess.run([sys.executable, '-c', _INVERT, mode, str(tmp_path / f'{mode}.npy')],
+                       env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    kept[mode] = r.stdout.split()
+  assert kept == {'write': ['1', '1'], 'read': ['1', '1'], 'off': ['0', '0']}
+  names = sorted(f.split('-')[0] for f in os.listdir(tmp_path / 'export'))
+  assert names == ['dusty_jax.inversion._search', 'dusty_jax.inversion._start']
+  want = np.load(tmp_path / 'off.npy')
+  for mode in ('write', 'read'):
+    np.testing.assert_array_equal(np.load(tmp_path / f'{mode}.npy'), want)
 
 
 def test_import_and_tool_help_load_no_jax():
