@@ -53,7 +53,7 @@ import optax
 import tqdm
 from flax import traverse_util
 
-from dusty_jax import checkpoint, corrupt, layers, parallel, xla_cache
+from dusty_jax import checkpoint, corrupt, layers, models, parallel, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.models import EqualConv, check_shape
 
@@ -150,7 +150,8 @@ def encode(params, scans, impl: str | None = None):
   return _encode(params, scans, impl)
 
 
-@xla_cache.jit(static_argnames=('impl',))
+@xla_cache.jit(static_argnames=('impl',),
+               exportable=lambda params, **_: models.is_builtin(params.model))
 def _encode(params, scans, impl):
   return project(module(params, impl).apply(params.encoder, scans))
 

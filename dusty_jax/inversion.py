@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import encoder as encoder_lib, pretrained, sampling, xla_cache
+from dusty_jax import encoder as encoder_lib, models, pretrained, sampling, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.generator import GeneratorParams
 
@@ -132,8 +132,8 @@ def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
 
 
 @xla_cache.jit(static_argnames=('start',),
-               exportable=lambda start: start is None or STARTS.get(start) in (
-                   random_start, encoder_start))
+               exportable=lambda params, start, **_: models.is_builtin(params.model) and (
+                   start is None or STARTS.get(start) in (random_start, encoder_start)))
 def _start(params, scan, mask, key, z0, start):
   """What a search starts from: the target scans (drops at ALPHA), their
   masks, one key per scan and the starting latents (``start`` a name in
@@ -148,7 +148,8 @@ def _start(params, scan, mask, key, z0, start):
 
 
 @xla_cache.jit(static_argnames=('impl', 'loss'),
-               exportable=lambda impl, loss: loss is objective)
+               exportable=lambda params, loss, **_: models.is_builtin(params.model)
+               and loss is objective)
 def _search(params, scans, masks, z0, keys, num_steps, lr, impl, loss):
   """The searches from ``z0`` and their re-rendered results. ``num_steps``
   and ``lr`` are traced: one compilation serves every step count."""
@@ -196,6 +197,16 @@ def _warn_if_not_encoded(scans: np.ndarray, single: bool):
         'as invert() takes, where far returns lie below 0 and drops at -1. Given '
         'depth / max_depth (or other [0, 1] values) by mistake? Encode metric '
         'depth with dusty_jax.codec.encode(depth, params.sensor)', stacklevel=3)
+
+
+def _warn_if_empty(scans: np.ndarray, masks: np.ndarray | None):
+  """Warns about scans without a valid target pixel (target_mask, in numpy)."""
+  finite = np.isfinite(scans)
+  valid = finite & (scans > ALPHA) if masks is None else masks.astype(bool) & finite
+  empty = np.flatnonzero(~valid.any(axis=(1, 2)))
+  if empty.size:
+    warnings.warn(f'scans {empty.tolist()} have no valid pixel: nothing to '
+                  'fit, their result is the initial latent', stacklevel=3)
 
 
 def invert(params: GeneratorParams, scan, mask=None, *, key=None,
@@ -264,6 +275,8 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
                      f'{hw}: expected {hw} or (B,) + {hw}')
   if not isinstance(scan, jax.core.Tracer):
     _warn_if_not_encoded(np.asarray(scan), single)
+    if not isinstance(mask, jax.core.Tracer):
+      _warn_if_empty(np.asarray(scan), None if mask is None else np.asarray(mask))
   key = sampling.as_key(key)
   if key.shape not in ((), (len(scan),)):
     raise ValueError(f'key: expected one key or {len(scan)} keys, got shape '
@@ -274,11 +287,6 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
   if mask is not None:
     mask = jnp.asarray(mask)
   scans, masks, keys, z0 = _start(params, scan, mask, key, z0, start)
-  if not isinstance(masks, jax.core.Tracer):
-    empty = np.flatnonzero(~np.asarray(masks).any(axis=(1, 2)))
-    if empty.size:
-      warnings.warn(f'scans {empty.tolist()} have no valid pixel: nothing to '
-                    'fit, their result is the initial latent', stacklevel=2)
   out = _search(params, scans, masks, z0, keys, np.int32(num_steps), lr, impl, loss)
   return _first(out) if single else out
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, sensor, xla_cache
+from dusty_jax import codec, models, sensor, xla_cache
 from dusty_jax.generator import GeneratorParams
 
 
@@ -35,7 +35,8 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   return _generate(params, z, key, train, impl)
 
 
-@xla_cache.jit(static_argnames=('train', 'impl'))
+@xla_cache.jit(static_argnames=('train', 'impl'),
+               exportable=lambda params, **_: models.is_builtin(params.model))
 def _generate(params, z, key, train, impl):
   raw = params.module(impl).apply(params.variables, z)
   out = params.variant.compose(raw, key, params.tau, train)
@@ -83,7 +84,8 @@ def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   return _sample(params, key, int(num), impl)
 
 
-@xla_cache.jit(static_argnames=('num', 'impl'))
+@xla_cache.jit(static_argnames=('num', 'impl'),
+               exportable=lambda params, **_: models.is_builtin(params.model))
 def _sample(params, key, num, impl):
   kz, kmask = jax.random.split(key)
   z = jax.random.normal(kz, (num, params.latent_dim))

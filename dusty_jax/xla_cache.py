@@ -15,23 +15,31 @@ still turns every cache off.
 
 The persistent cache skips XLA's compilation, not the tracing and lowering
 before it, which is most of a second process's first ``invert`` (about 2 of
-its 3 s on a 2-core CPU). :func:`jit` keeps those too: a function it wraps
-is traced once, exported (``jax.export``) and written under
-``$DUSTY_JAX_CACHE/export``; a later process reads the program back instead
-of tracing it. A file is keyed by everything the trace depends on: the
-function, the dusty_jax source, the JAX version and platform, the arguments'
-tree structure (with the static fields of a model's params) and avals, and
-the static arguments; anything that cannot be keyed, or fails to read, is
-traced as jax.jit traces it.
+its 3 s on a 2-core CPU). :func:`jit` keeps those too, for dusty_jax's own
+functions: a function it wraps is traced once, exported (``jax.export``)
+and written under ``$DUSTY_JAX_CACHE/export`` (under a JAX cache directory
+the user named: its ``dusty_jax_export`` folder); a later process reads the
+program back instead of tracing it. A file is keyed by what the trace
+depends on: the function; the dusty_jax source (a process whose source
+changed after it started keeps nothing); the versions of Python, numpy, JAX,
+jaxlib, flax and optax; JAX's tracing settings; the platform; the
+arguments' tree structure (with the static fields of a model's params),
+avals and devices; the static arguments. Anything that cannot be keyed, or
+fails to read or run, is traced as jax.jit traces it.
 """
 
 from __future__ import annotations
 
+import enum
 import functools
 import hashlib
+import importlib.metadata
 import inspect
 import os
+import shutil
+import sys
 import tempfile
+import time
 
 import jax
 import jax.numpy as jnp
@@ -87,31 +95,66 @@ def enable() -> str | None:
 
 # --- Traced programs kept on disk (jax.export) -------------------------------
 EXPORT_SUFFIX = '.jaxexport'
+OWN_EXPORT_FOLDER = 'dusty_jax_export'  # inside a JAX cache directory a user named
+STALE_DAYS = 7  # folders of other sources unused this long are removed
+_PACKAGE = os.path.dirname(os.path.abspath(__file__))
+_VERSIONED = ('numpy', 'jax', 'jaxlib', 'flax', 'optax', 'ml_dtypes')
 
 
 def export_directory() -> str | None:
-  """Where exported programs go, or None when the cache is off."""
-  if enable() is None:
+  """Where traced programs are kept, or None when the cache is off."""
+  in_use = enable()
+  if in_use is None or not jax.config.jax_enable_compilation_cache:
     return None
-  return os.path.join(cache_root(), 'export')
+  if in_use == directory():
+    return os.path.join(cache_root(), 'export')
+  return os.path.join(in_use, OWN_EXPORT_FOLDER)
 
 
-@functools.lru_cache(maxsize=None)
-def _source_digest() -> str:
-  """SHA-1 of the dusty_jax package's Python source: a changed line makes
-  every exported program stale."""
-  root = os.path.dirname(os.path.abspath(__file__))
+def source_digest() -> str | None:
+  """SHA-1 of the dusty_jax package's Python source, or None where it cannot
+  stand for the code running: a file changed after this process started
+  (an edit, a reload), or no source to read."""
+  loaded = sys.modules[__name__.split('.')[0]]._loaded_at
   h = hashlib.sha1()
-  for folder, dirs, files in os.walk(root):
+  found = False
+  for folder, dirs, files in os.walk(_PACKAGE):
     dirs[:] = sorted(d for d in dirs if not d.startswith(('.', '__')))
     for name in sorted(f for f in files if f.endswith('.py')):
       path = os.path.join(folder, name)
-      h.update(os.path.relpath(path, root).encode())
       with open(path, 'rb') as f:
-        h.update(f.read())
-  return h.hexdigest()
+        if os.fstat(f.fileno()).st_mtime >= loaded:
+          return None
+        h.update(os.path.relpath(path, _PACKAGE).encode() + b'\0' + f.read())
+      found = True
+  return h.hexdigest() if found else None
 
 
+@functools.lru_cache(maxsize=None)
+def _environment() -> str:
+  """The versions the traced code depends on, as text."""
+  versions = [sys.version.split()[0]]
+  for name in _VERSIONED:
+    try:
+      versions.append(f'{name} {importlib.metadata.version(name)}')
+    except importlib.metadata.PackageNotFoundError:
+      versions.append(f'{name} -')
+  return ', '.join(versions)
+
+
+def _trace_settings() -> str | None:
+  """JAX's settings that change what tracing makes (what jax.jit keys its
+  own cache on), or None where JAX does not expose them."""
+  try:
+    from jax._src import config as jax_config  # private: guarded
+    context = jax_config.trace_context()
+  except Exception:
+    return None
+  plain = (str, int, float, bool, type(None), tuple, enum.Enum)
+  return repr([v if isinstance(v, plain) else type(v).__name__ for v in context])
+
+
+@functools.lru_cache(maxsize=None)
 def _can_serialise() -> bool:
   try:
     import flatbuffers  # noqa: F401  (jax.export's serialisation needs it)
@@ -129,14 +172,18 @@ def _static_repr(value) -> str:
   return repr(value)
 
 
+def _weak(x) -> bool:
+  return getattr(x, 'weak_type', False)  # typed keys have none
+
+
 def _is_key(x) -> bool:
   return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
 class _Exported:
   """A function jitted as jax.jit does, whose traced program is kept on disk
-  (see the module docstring). ``exportable(**static)`` says whether a call
-  with those static arguments may use the kept program."""
+  (see the module docstring). ``exportable(**arguments)`` says whether a
+  call may use a kept program."""
 
   def __init__(self, fun, static_argnames, exportable):
     self.fun = fun
@@ -145,7 +192,9 @@ class _Exported:
     self.exportable = exportable
     self.signature = inspect.signature(fun)
     self.name = f'{fun.__module__}.{fun.__qualname__}'
-    self.programs = {}  # file name -> jitted call of the exported program
+    self.own = fun.__module__.split('.')[0] == __name__.split('.')[0]
+    self.names = {}     # (tree, avals, static) -> file path, or None: not kept
+    self.programs = {}  # file path -> jitted call of the kept program
     functools.update_wrapper(self, fun)
 
   def _cache_size(self) -> int:
@@ -153,98 +202,133 @@ class _Exported:
     return self.jitted._cache_size() + len(self.programs)
 
   def __call__(self, *args, **kwargs):
+    if not self.own or jax.config.jax_disable_jit or export_directory() is None:
+      return self.jitted(*args, **kwargs)
     bound = self.signature.bind(*args, **kwargs)
     bound.apply_defaults()
     static = {k: bound.arguments[k] for k in self.static_argnames}
-    dynamic = [v for k, v in bound.arguments.items() if k not in static]
-    leaves, tree = jax.tree.flatten(dynamic)
-    if export_directory() is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
-      return self.jitted(*args, **kwargs)  # inside traced code: inline, as jax.jit
+    leaves, tree = jax.tree.flatten([v for k, v in bound.arguments.items()
+                                     if k not in static])
+    if any(isinstance(x, jax.core.Tracer) for x in leaves) or (
+        self.exportable and not self.exportable(**bound.arguments)):
+      return self.jitted(*args, **kwargs)  # inside traced code it inlines
     # Python and numpy values as jax.jit sees them (weak types, canonical dtypes).
     leaves = [x if isinstance(x, jax.Array) else jnp.asarray(x) for x in leaves]
-    name = self._file_name(leaves, tree, static)
-    if name is None:
+    memo = (tree, tuple((x.shape, x.dtype, _weak(x), x.sharding) for x in leaves),
+            tuple(static.items()))
+    if memo not in self.names:
+      self.names[memo] = self._path(leaves, tree, static)
+    path = self.names[memo]
+    if path is None:
       return self.jitted(*args, **kwargs)
     flat = [jax.random.key_data(x) if _is_key(x) else x for x in leaves]
-    program = self.programs.get(name) or self._program(name, flat, leaves, tree, static)
-    if program is None:
+    if path in self.programs:
+      return self.programs[path](*flat)
+    program, read = self._program(path, flat, leaves, tree, static)
+    if program is not None and read:
+      try:
+        out = program(*flat)
+        self.programs[path] = program
+        return out
+      except Exception:  # damaged, or not for this jaxlib: removed, traced anew
+        _remove(path)
+        program, _ = self._program(path, flat, leaves, tree, static)
+    if program is None:  # not exportable: jax.jit's trace in every process
+      self.names[memo] = None
       return self.jitted(*args, **kwargs)
+    self.programs[path] = program
     return program(*flat)
 
-  def _file_name(self, leaves, tree, static) -> str | None:
-    """The kept program's file name for these arguments, or None where the
-    call cannot use one (cache off, traced arguments, an unkeyable part)."""
-    if not _can_serialise() or (self.exportable and not self.exportable(**static)):
+  def _path(self, leaves, tree, static) -> str | None:
+    """The kept program's file for these arguments, or None where the call
+    cannot be keyed."""
+    folder = export_directory()
+    digest, settings = source_digest(), _trace_settings()
+    devices = {d for x in leaves for d in x.sharding.device_set}
+    if not _can_serialise() or digest is None or settings is None or len(devices) > 1:
       return None
-    avals = []
-    for x in leaves:
-      if len(x.sharding.device_set) > 1:
-        return None
-      key_impl = str(jax.random.key_impl(x)) if _is_key(x) else ''
-      avals.append((tuple(x.shape), str(x.dtype), getattr(x, 'weak_type', False), key_impl))
-    device = jax.devices()[0]
-    text = repr((self.name, jax.__version__, device.platform, device.device_kind,
-                 bool(jax.config.jax_enable_x64), jax.config.jax_default_matmul_precision,
-                 str(tree), avals,
+    device = devices.pop() if devices else jax.devices()[0]
+    avals = [(tuple(x.shape), str(x.dtype), _weak(x),
+              str(jax.random.key_impl(x)) if _is_key(x) else '') for x in leaves]
+    text = repr((self.name, _environment(), settings, device.platform, device.device_kind,
+                 jax.default_backend(), str(tree), avals,
                  sorted((k, _static_repr(v)) for k, v in static.items())))
     if ' at 0x' in text:  # a repr that names an address differs per process
       return None
-    digest = hashlib.sha1(text.encode()).hexdigest()[:20]
-    return f'{self.name}-{_source_digest()[:12]}-{digest}{EXPORT_SUFFIX}'
+    key = hashlib.sha1(text.encode()).hexdigest()[:20]
+    return os.path.join(folder, digest[:16], f'{self.name}-{key}{EXPORT_SUFFIX}')
 
-  def _program(self, name, flat, leaves, tree, static):
-    """The jitted call of the program kept in ``name``: read, or traced,
-    exported and written; None where neither works."""
-    from jax import export  # jax.export: only where a program is kept
-    folder = export_directory()
-    path = os.path.join(folder, name)
-    exported = None
+  def _program(self, path, flat, leaves, tree, static):
+    """(jitted call of the program kept at ``path``, whether it was read):
+    read, or traced, exported and written; (None, False) where it cannot be
+    exported."""
+    from jax import export  # only where a program is kept
     try:
       with open(path, 'rb') as f:
-        exported = export.deserialize(bytearray(f.read()))
-    except Exception:  # absent, or unreadable (torn, another JAX): trace anew
-      exported = None
-    if exported is None:
-      key_impls = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
+        return jax.jit(export.deserialize(bytearray(f.read())).call), True
+    except Exception:  # absent, or unreadable (torn, another format)
+      pass
+    key_impls = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
 
-      def flat_fun(*flat_args):
-        args = [jax.random.wrap_key_data(a, impl=i) if i is not None else a
-                for a, i in zip(flat_args, key_impls)]
-        return self.fun(*jax.tree.unflatten(tree, args), **static)
+    def flat_fun(*flat_args):
+      args = [a if i is None else jax.random.wrap_key_data(a, impl=i)
+              for a, i in zip(flat_args, key_impls)]
+      return self.fun(*jax.tree.unflatten(tree, args), **static)
 
-      try:
-        exported = export.export(jax.jit(flat_fun))(*flat)
-        _write(folder, name, exported.serialize(), prefix=f'{self.name}-')
-      except Exception:  # what cannot be exported is traced as jax.jit does
-        return None
-    program = jax.jit(exported.call)
-    self.programs[name] = program
-    return program
+    try:
+      exported = export.export(jax.jit(flat_fun))(*flat)
+      data = exported.serialize()
+    except Exception:  # not exportable (a user's error surfaces from jax.jit)
+      return None, False
+    _write(path, data)
+    return jax.jit(exported.call), False
 
 
-def _write(folder: str, name: str, data: bytes, prefix: str):
-  """Writes ``data`` to folder/name atomically, and removes the files of
-  ``prefix`` that an older dusty_jax source wrote."""
+def _remove(path: str):
   try:
-    os.makedirs(folder, exist_ok=True)
+    os.remove(path)
+  except OSError:
+    pass
+
+
+def _write(path: str, data: bytes):
+  """Writes ``data`` to ``path`` atomically. A new source's first program
+  also removes the folders of other sources unused for STALE_DAYS."""
+  folder = os.path.dirname(path)
+  tmp = None
+  try:
+    if not os.path.isdir(folder):
+      os.makedirs(folder, exist_ok=True)
+      _prune(os.path.dirname(folder), keep=os.path.basename(folder))
     fd, tmp = tempfile.mkstemp(dir=folder, suffix='.tmp')
     with os.fdopen(fd, 'wb') as f:
       f.write(data)
-    os.replace(tmp, os.path.join(folder, name))
-    current = f'{prefix}{_source_digest()[:12]}-'
-    for other in os.listdir(folder):
-      if other.startswith(prefix) and not other.startswith(current):
-        os.remove(os.path.join(folder, other))
+    os.replace(tmp, path)
+    tmp = None
   except OSError:  # a read-only or full cache: the program is still used
     pass
+  finally:
+    if tmp is not None:
+      _remove(tmp)
+
+
+def _prune(root: str, keep: str):
+  """Removes the source folders under ``root`` other than ``keep`` that
+  nothing was written to for STALE_DAYS."""
+  limit = time.time() - STALE_DAYS * 86400
+  for name in os.listdir(root):
+    folder = os.path.join(root, name)
+    if name != keep and os.path.isdir(folder) and os.path.getmtime(folder) < limit:
+      shutil.rmtree(folder, ignore_errors=True)
 
 
 def jit(fun=None, *, static_argnames=(), exportable=None):
   """``jax.jit(fun, static_argnames=...)`` whose traced program a later
-  process reads from disk instead of tracing it again (module docstring).
-  ``exportable(**static)``: whether calls with these static arguments may
-  be kept (e.g. only with the default loss function). Inside other traced
-  code it inlines, as jax.jit does."""
+  process reads from disk instead of tracing it again (module docstring);
+  for functions of dusty_jax only (the source of others is not keyed: they
+  are jitted as jax.jit does). ``exportable(**arguments)``: whether a call
+  may be kept (e.g. only with the default loss function). Inside other
+  traced code, and under jax.disable_jit, it is jax.jit."""
   if fun is None:
     return functools.partial(jit, static_argnames=static_argnames, exportable=exportable)
   return _Exported(fun, static_argnames, exportable)

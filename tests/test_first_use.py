@@ -1,10 +1,12 @@
 """A newcomer's first calls (issue 36): the compilation cache, light imports,
 pretrained names where a run directory is taken, and the small errors."""
 
+import dataclasses
 import os
 import re
 import subprocess
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +14,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import cli, codec, encoder, inversion, pretrained, xla_cache
+from dusty_jax import cli, codec, encoder, inversion, models, pretrained, sampling, xla_cache
 from dusty_jax.data import pipeline
 from dusty_jax.sensor import get_sensor
 from dusty_jax.tools import train_encoder
@@ -77,65 +79,115 @@ def test_the_cache_is_off_when_asked_and_a_users_own_is_kept(tmp_path):
   assert not (tmp_path / 'xla').exists()
 
 
-def _affine(x, scale, how):
-  return x * scale + (1.0 if how == 'plus' else -1.0)
-
-
 def _raise(*args, **kwargs):
   raise AssertionError('traced and exported again')
 
 
-def test_a_traced_program_is_kept_and_read_back(tmp_path, monkeypatch):
-  monkeypatch.setenv('DUSTY_JAX_CACHE', str(tmp_path))
-  kept = tmp_path / 'export'
-  fn = xla_cache.jit(_affine, static_argnames=('how',))
-  x = jnp.arange(4.0)
-  np.testing.assert_array_equal(fn(x, 2.0, 'plus'), x * 2 + 1)
-  (written,) = os.listdir(kept)
-  assert written.startswith('test_first_use._affine-')
+def _kept(folder):
+  return sorted(p.name for p in folder.rglob('*' + xla_cache.EXPORT_SUFFIX))
+
+
+def _decode():
+  """codec.decode kept on disk, as a new process would wrap it."""
+  return xla_cache.jit(codec.decode, static_argnames=('sensor', 'tolerance'))
+
+
+def _same(got, want):
+  for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.fixture
+def kept_in(tmp_path, monkeypatch):
+  """Kept programs go under tmp_path (as under a JAX cache folder a user named)."""
+  monkeypatch.setitem(xla_cache._state, 'done', True)
+  monkeypatch.setitem(xla_cache._state, 'directory', str(tmp_path))
+  return tmp_path / xla_cache.OWN_EXPORT_FOLDER
+
+
+def test_a_traced_program_is_kept_and_read_back(kept_in, monkeypatch):
+  # A folder of another source, unused for longer than STALE_DAYS, goes when
+  # this source's folder is made; a recent one stays.
+  old, recent = kept_in / ('0' * 16), kept_in / ('1' * 16)
+  for folder in (old, recent):
+    folder.mkdir(parents=True)
+  long_ago = time.time() - (xla_cache.STALE_DAYS + 1) * 86400
+  os.utime(old, (long_ago, long_ago))
+  x = jnp.linspace(-1.0, 1.0, 12).reshape(3, 4)
+  want = codec.decode(x, 'kitti')
+  fn = _decode()
+  _same(fn(x, 'kitti'), want)
+  (written,) = _kept(kept_in)
+  assert written.startswith('dusty_jax.codec.decode-')
+  assert not old.exists() and recent.exists()
   # A new wrapper (what a new process has) reads the file instead of tracing.
   real_export = jax.export.export
   monkeypatch.setattr(jax.export, 'export', _raise)
-  again = xla_cache.jit(_affine, static_argnames=('how',))
-  np.testing.assert_array_equal(again(x, 2.0, how='plus'), x * 2 + 1)
-  assert len(again.programs) == 1 and os.listdir(kept) == [written]
-  # Inside traced code it inlines, as jax.jit does: nothing is read or kept.
-  np.testing.assert_array_equal(jax.jit(lambda y: again(y, 3.0, 'minus'))(x), x * 3 - 1)
+  again = _decode()
+  _same(again(x, sensor='kitti'), want)
   assert len(again.programs) == 1
+  # Inside traced code, and under disable_jit, it is jax.jit: nothing new kept.
+  _same(jax.jit(lambda y: again(y, 'kitti'))(x), want)
+  with jax.disable_jit():
+    _same(again(x, 'kitti'), want)
+  assert len(again.programs) == 1 and _kept(kept_in) == [written]
   # A torn file is traced again and rewritten.
   monkeypatch.setattr(jax.export, 'export', real_export)
-  (kept / written).write_bytes(b'torn')
-  torn = xla_cache.jit(_affine, static_argnames=('how',))
-  np.testing.assert_array_equal(torn(x, 2.0, 'plus'), x * 2 + 1)
-  assert (kept / written).stat().st_size > 100
+  (path,) = kept_in.rglob(written)
+  path.write_bytes(b'torn')
+  _same(_decode()(x, 'kitti'), want)
+  assert path.stat().st_size > 100
   # A new shape, dtype or static argument is another program, in its own file.
-  fn(jnp.arange(5.0), 2.0, 'plus')
-  fn(jnp.arange(4), 2, 'plus')
-  fn(x, 2.0, 'minus')
-  assert len(os.listdir(kept)) == 4
-  # Calls the predicate refuses are traced each process, never kept.
-  only_plus = xla_cache.jit(_affine, static_argnames=('how',),
-                            exportable=lambda how: how == 'plus')
-  np.testing.assert_array_equal(only_plus(x, 1.0, 'minus'), x - 1)
-  assert not only_plus.programs and len(os.listdir(kept)) == 4
-  # Files an older dusty_jax source wrote go when a new one is written.
-  stale = kept / 'test_first_use._affine-000000000000-0.jaxexport'
-  stale.write_bytes(b'old')
-  fn(jnp.arange(6.0), 2.0, 'plus')
-  assert not stale.exists() and len(os.listdir(kept)) == 5
+  before = set(kept_in.rglob('*' + xla_cache.EXPORT_SUFFIX))
+  _same(fn(x[:2], 'kitti'), codec.decode(x[:2], 'kitti'))
+  (other,) = set(kept_in.rglob('*' + xla_cache.EXPORT_SUFFIX)) - before
+  _same(fn(x, 'kitti', 0.25), codec.decode(x, 'kitti', 0.25))
+  _same(fn(x, 'mpo'), codec.decode(x, 'mpo'))
+  assert len(_kept(kept_in)) == 4
+  # A kept program that reads but does not run here (another shape's, say) is
+  # replaced by a new trace.
+  path.write_bytes(other.read_bytes())
+  _same(_decode()(x, 'kitti'), want)
+  assert path.read_bytes() != other.read_bytes()
 
 
-def test_kept_programs_are_off_with_the_cache(tmp_path, monkeypatch):
+def test_programs_are_not_kept_where_they_could_be_stale(kept_in, monkeypatch, shipped):
+  params = shipped[0]
+  key = jax.random.key(3)
+  want = sampling._sample.jitted(params, key, 2, None)
+  _same(dusty_jax.sample(params, key, 2), want)
+  assert [n.split('-')[0] for n in _kept(kept_in)] == ['dusty_jax.sampling._sample']
+  # A static field of the params (tau) is in the key: a new program.
+  warmer = params.replace(settings=dataclasses.replace(params.settings, tau=0.5))
+  _same(dusty_jax.sample(warmer, key, 2), sampling._sample.jitted(warmer, key, 2, None))
+  assert len(_kept(kept_in)) == 2
+  # A variant a user replaced is traced each time, never kept.
+  monkeypatch.setitem(models.VARIANTS, 'dusty1', dataclasses.replace(models.VARIANTS['dusty1']))
+  _same(dusty_jax.sample(params, key, 3), sampling._sample.jitted(params, key, 3, None))
+  assert len(_kept(kept_in)) == 2
+  monkeypatch.undo()
+  # Source changed since the package was loaded: the digest stands for nothing.
   monkeypatch.setitem(xla_cache._state, 'done', True)
+  monkeypatch.setitem(xla_cache._state, 'directory', str(kept_in.parent))
+  monkeypatch.setattr(dusty_jax, '_loaded_at', 0.0)
+  assert xla_cache.source_digest() is None
+  fn = _decode()
+  _same(fn(jnp.zeros((2, 2)), 'kitti'), codec.decode(jnp.zeros((2, 2)), 'kitti'))
+  assert not fn.programs and len(_kept(kept_in)) == 2
+
+
+def test_kept_programs_are_off_with_the_cache(kept_in, monkeypatch):
   monkeypatch.setitem(xla_cache._state, 'directory', None)  # as with ..._CACHE=0
-  monkeypatch.setenv('DUSTY_JAX_CACHE', str(tmp_path))
-  fn = xla_cache.jit(_affine, static_argnames=('how',))
-  np.testing.assert_array_equal(fn(jnp.arange(3.0), 2.0, 'plus'), jnp.arange(3.0) * 2 + 1)
-  assert not fn.programs and not (tmp_path / 'export').exists()
+  fn = _decode()
+  _same(fn(jnp.zeros(3), 'kitti'), codec.decode(jnp.zeros(3), 'kitti'))
+  assert not fn.programs and not kept_in.parent.joinpath('export').exists()
+  assert not kept_in.exists()
 
 
-# invert() of one scan in a process of its own: 'write' (cache empty), 'read'
-# (jax.export unusable: the search must come from the file) or 'off'.
+# invert() in a process of its own, twice (one scan from a random start; the
+# same scan with a mask, one key per scan, from the encoder): 'write' (cache
+# empty), 'read' (jax.export unusable: the programs must come from the files)
+# or 'off'.
 _INVERT = """
 import sys
 import jax, numpy as np
@@ -147,15 +199,20 @@ if mode == 'read':
   jax.export.export = None
 params = dusty_jax.load_pretrained('sim-dusty1')
 scan = codec.encode(simulated_lidar.render_scan(7, params.sensor).depth, params.sensor)
-res = dusty_jax.invert(params, scan, num_steps=3)
-np.save(out, np.asarray(res['inv_depth']))
+a = dusty_jax.invert(params, scan, num_steps=3)['inv_depth']
+mask = np.zeros(scan.shape, bool)
+mask[:, ::2] = scan[:, ::2] > -1
+b = dusty_jax.invert(params, scan[None], mask=mask[None], init='encoder', num_steps=2,
+                     key=jax.random.split(jax.random.key(5), 1))['inv_depth'][0]
+np.save(out, np.stack([a, b]))
 print(len(inversion._start.programs), len(inversion._search.programs))
 """
 
 
-def test_a_second_process_inverts_from_the_kept_program_bit_for_bit(tmp_path):
+def test_a_second_process_inverts_from_the_kept_programs_bit_for_bit(tmp_path):
   env = dict(os.environ, XLA_FLAGS=FAST_COMPILE, PYTHONPATH=os.path.abspath(REPO),
              DUSTY_JAX_CACHE=str(tmp_path))
+  env.pop('JAX_COMPILATION_CACHE_DIR')  # kept under DUSTY_JAX_CACHE, as for a user
   kept = {}
   for mode in ('write', 'read', 'off'):
     if mode == 'off':
@@ -164,9 +221,9 @@ def test_a_second_process_inverts_from_the_kept_program_bit_for_bit(tmp_path):
                        env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     kept[mode] = r.stdout.split()
-  assert kept == {'write': ['1', '1'], 'read': ['1', '1'], 'off': ['0', '0']}
-  names = sorted(f.split('-')[0] for f in os.listdir(tmp_path / 'export'))
-  assert names == ['dusty_jax.inversion._search', 'dusty_jax.inversion._start']
+  assert kept == {'write': ['2', '1'], 'read': ['2', '1'], 'off': ['0', '0']}
+  names = sorted(n.split('-')[0] for n in _kept(tmp_path / 'export'))
+  assert names == ['dusty_jax.inversion._search'] + ['dusty_jax.inversion._start'] * 2
   want = np.load(tmp_path / 'off.npy')
   for mode in ('write', 'read'):
     np.testing.assert_array_equal(np.load(tmp_path / f'{mode}.npy'), want)
