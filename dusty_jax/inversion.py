@@ -99,6 +99,7 @@ def encoder_start(params, scans, masks, keys):
 # keys (B,)) to (B, d) latents on the sphere, traced inside invert's jit.
 # invert(init=NAME) looks the name up here; a new start is one more entry.
 STARTS = {'random': random_start, 'encoder': encoder_start}
+_BUILTIN_STARTS = dict(STARTS)  # kept programs are only these (xla_cache.jit)
 
 
 def scan_loss(params, apply, z, target, mask, loss=objective):
@@ -133,7 +134,7 @@ def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
 
 @xla_cache.jit(static_argnames=('start',),
                exportable=lambda params, start, **_: models.is_builtin(params.model) and (
-                   start is None or STARTS.get(start) in (random_start, encoder_start)))
+                   start is None or STARTS.get(start) is _BUILTIN_STARTS.get(start)))
 def _start(params, scan, mask, key, z0, start):
   """What a search starts from: the target scans (drops at ALPHA), their
   masks, one key per scan and the starting latents (``start`` a name in

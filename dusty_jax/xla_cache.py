@@ -20,16 +20,19 @@ functions: a function it wraps is traced once, exported (``jax.export``)
 and written under ``$DUSTY_JAX_CACHE/export`` (under a JAX cache directory
 the user named: its ``dusty_jax_export`` folder); a later process reads the
 program back instead of tracing it. A file is keyed by what the trace
-depends on: the function; the dusty_jax source (a process whose source
-changed after it started keeps nothing); the versions of Python, numpy, JAX,
-jaxlib, flax and optax; JAX's tracing settings; the platform; the
-arguments' tree structure (with the static fields of a model's params),
-avals and devices; the static arguments. Anything that cannot be keyed, or
-fails to read or run, is traced as jax.jit traces it.
+depends on: the function; the dusty_jax source; the versions of Python,
+numpy, JAX, jaxlib, flax and optax; JAX's tracing settings; the platform;
+the arguments' tree structure (with the static fields of a model's params),
+avals and devices; the static arguments. Nothing is kept where the source
+cannot stand for the code running (a file changed after the package
+loaded; a module constant or function patched at run time; a model variant
+or start a user registered). Anything that cannot be keyed, or fails to
+read or run, is traced as jax.jit traces it.
 """
 
 from __future__ import annotations
 
+import ast
 import enum
 import functools
 import hashlib
@@ -118,15 +121,19 @@ def source_digest() -> str | None:
   loaded = sys.modules[__name__.split('.')[0]]._loaded_at
   h = hashlib.sha1()
   found = False
-  for folder, dirs, files in os.walk(_PACKAGE):
-    dirs[:] = sorted(d for d in dirs if not d.startswith(('.', '__')))
-    for name in sorted(f for f in files if f.endswith('.py')):
-      path = os.path.join(folder, name)
-      with open(path, 'rb') as f:
-        if os.fstat(f.fileno()).st_mtime >= loaded:
-          return None
-        h.update(os.path.relpath(path, _PACKAGE).encode() + b'\0' + f.read())
-      found = True
+  try:
+    for folder, dirs, files in os.walk(_PACKAGE):
+      dirs[:] = sorted(d for d in dirs if not d.startswith(('.', '__')))
+      for name in sorted(f for f in files if f.endswith('.py')):
+        path = os.path.join(folder, name)
+        with open(path, 'rb') as f:
+          stat = os.fstat(f.fileno())
+          if max(stat.st_mtime, stat.st_ctime) >= loaded:  # ctime: a copy keeping mtimes
+            return None
+          h.update(os.path.relpath(path, _PACKAGE).encode() + b'\0' + f.read())
+        found = True
+  except OSError:  # a file gone mid-update, say
+    return None
   return h.hexdigest() if found else None
 
 
@@ -142,16 +149,94 @@ def _environment() -> str:
   return ', '.join(versions)
 
 
-def _trace_settings() -> str | None:
+def _trace_context():
   """JAX's settings that change what tracing makes (what jax.jit keys its
   own cache on), or None where JAX does not expose them."""
   try:
     from jax._src import config as jax_config  # private: guarded
-    context = jax_config.trace_context()
+    return jax_config.trace_context()
   except Exception:
     return None
-  plain = (str, int, float, bool, type(None), tuple, enum.Enum)
-  return repr([v if isinstance(v, plain) else type(v).__name__ for v in context])
+
+
+_PLAIN = (str, int, float, bool, type(None), enum.Enum)
+
+
+def _trace_settings() -> str | None:
+  """_trace_context as text, or None where it holds more than plain values
+  (a mesh in use, say), which text would not tell apart."""
+  context = _trace_context()
+  if context is None:
+    return None
+  text = []
+  for value in context:
+    if isinstance(value, tuple) and value and not all(isinstance(v, _PLAIN) for v in value):
+      return None
+    text.append(value if isinstance(value, _PLAIN + (tuple,)) else type(value).__name__)
+  return repr(text)
+
+
+@functools.lru_cache(maxsize=None)
+def _defaults(path: str) -> tuple[dict, tuple]:
+  """What a module's source sets at its top level: (plain literal values by
+  name, function names)."""
+  with open(path, encoding='utf-8') as f:
+    body = ast.parse(f.read()).body
+  values, functions = {}, []
+  for node in body:
+    target = (node.targets[0] if isinstance(node, ast.Assign) and len(node.targets) == 1
+              else node.target if isinstance(node, ast.AnnAssign) and node.value else None)
+    if isinstance(target, ast.Name):
+      try:
+        value = ast.literal_eval(node.value)
+      except (ValueError, SyntaxError, TypeError):
+        continue
+      if _is_plain(value):
+        values[target.id] = value
+    elif isinstance(node, ast.FunctionDef):
+      functions.append(node.name)
+  return values, tuple(functions)
+
+
+def _is_plain(value) -> bool:
+  if isinstance(value, tuple):
+    return all(_is_plain(v) for v in value)
+  return isinstance(value, _PLAIN)
+
+
+def patched() -> bool:
+  """Whether a loaded dusty_jax module's constant or function differs from
+  what its source sets (a user's or a test's patch, which the source digest
+  cannot see): then nothing is kept."""
+  package = __name__.split('.')[0]
+  for name, module in list(sys.modules.items()):
+    path = getattr(module, '__file__', None)
+    if name.split('.')[0] != package or not path or not path.endswith('.py'):
+      continue
+    try:
+      values, functions = _defaults(path)
+    except (OSError, SyntaxError, ValueError):
+      return True
+    now = vars(module)
+    for attr, value in values.items():
+      if attr in now and not (type(now[attr]) is type(value) and now[attr] == value):
+        return True
+    for attr in functions:
+      fn = now.get(attr)
+      if (getattr(fn, '__module__', None) != name
+          or getattr(fn, '__qualname__', None) != attr):
+        return True
+  return False
+
+
+def _devices(leaves) -> set:
+  return {d for x in leaves for d in x.sharding.device_set}
+
+
+def _device(leaves):
+  """The device the arguments are on (the default one where none is)."""
+  devices = _devices(leaves)
+  return devices.pop() if devices else jax.devices()[0]
 
 
 @functools.lru_cache(maxsize=None)
@@ -215,7 +300,7 @@ class _Exported:
     # Python and numpy values as jax.jit sees them (weak types, canonical dtypes).
     leaves = [x if isinstance(x, jax.Array) else jnp.asarray(x) for x in leaves]
     memo = (tree, tuple((x.shape, x.dtype, _weak(x), x.sharding) for x in leaves),
-            tuple(static.items()))
+            tuple(static.items()), _trace_context(), export_directory())
     if memo not in self.names:
       self.names[memo] = self._path(leaves, tree, static)
     path = self.names[memo]
@@ -225,33 +310,30 @@ class _Exported:
     if path in self.programs:
       return self.programs[path](*flat)
     program, read = self._program(path, flat, leaves, tree, static)
-    if program is not None and read:
+    if program is not None:
       try:
         out = program(*flat)
         self.programs[path] = program
         return out
-      except Exception:  # damaged, or not for this jaxlib: removed, traced anew
-        _remove(path)
-        program, _ = self._program(path, flat, leaves, tree, static)
-    if program is None:  # not exportable: jax.jit's trace in every process
-      self.names[memo] = None
-      return self.jitted(*args, **kwargs)
-    self.programs[path] = program
-    return program(*flat)
+      except Exception:  # damaged, or not for this jaxlib: jax.jit's instead
+        if read:
+          _remove(path)  # the next process traces it anew
+    self.names[memo] = None  # not kept in this process: jax.jit from now on
+    return self.jitted(*args, **kwargs)
 
   def _path(self, leaves, tree, static) -> str | None:
     """The kept program's file for these arguments, or None where the call
     cannot be keyed."""
     folder = export_directory()
     digest, settings = source_digest(), _trace_settings()
-    devices = {d for x in leaves for d in x.sharding.device_set}
-    if not _can_serialise() or digest is None or settings is None or len(devices) > 1:
+    if (not _can_serialise() or digest is None or settings is None or '://' in folder
+        or len(_devices(leaves)) > 1 or patched()):
       return None
-    device = devices.pop() if devices else jax.devices()[0]
+    device = _device(leaves)
     avals = [(tuple(x.shape), str(x.dtype), _weak(x),
               str(jax.random.key_impl(x)) if _is_key(x) else '') for x in leaves]
-    text = repr((self.name, _environment(), settings, device.platform, device.device_kind,
-                 jax.default_backend(), str(tree), avals,
+    text = repr((self.name, _environment(), settings, device.platform,
+                 device.device_kind, jax.default_backend(), str(tree), avals,
                  sorted((k, _static_repr(v)) for k, v in static.items())))
     if ' at 0x' in text:  # a repr that names an address differs per process
       return None
@@ -265,7 +347,9 @@ class _Exported:
     from jax import export  # only where a program is kept
     try:
       with open(path, 'rb') as f:
-        return jax.jit(export.deserialize(bytearray(f.read())).call), True
+        program = jax.jit(export.deserialize(bytearray(f.read())).call)
+      os.utime(os.path.dirname(path))  # in use: not pruned
+      return program, True
     except Exception:  # absent, or unreadable (torn, another format)
       pass
     key_impls = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
@@ -276,7 +360,8 @@ class _Exported:
       return self.fun(*jax.tree.unflatten(tree, args), **static)
 
     try:
-      exported = export.export(jax.jit(flat_fun))(*flat)
+      exported = export.export(jax.jit(flat_fun), platforms=(_device(leaves).platform,))(
+          *flat)
       data = exported.serialize()
     except Exception:  # not exportable (a user's error surfaces from jax.jit)
       return None, False
