@@ -170,9 +170,9 @@ def _trace_settings() -> str | None:
     return None
   text = []
   for value in context:
-    if isinstance(value, tuple) and value and not all(isinstance(v, _PLAIN) for v in value):
+    if isinstance(value, tuple) and not _is_plain(value):
       return None
-    text.append(value if isinstance(value, _PLAIN + (tuple,)) else type(value).__name__)
+    text.append(value if _is_plain(value) else type(value).__name__)
   return repr(text)
 
 
