@@ -287,7 +287,8 @@ class _Exported:
     return self.jitted._cache_size() + len(self.programs)
 
   def __call__(self, *args, **kwargs):
-    if not self.own or jax.config.jax_disable_jit or export_directory() is None:
+    folder = None if not self.own or jax.config.jax_disable_jit else export_directory()
+    if folder is None:
       return self.jitted(*args, **kwargs)
     bound = self.signature.bind(*args, **kwargs)
     bound.apply_defaults()
@@ -300,9 +301,9 @@ class _Exported:
     # Python and numpy values as jax.jit sees them (weak types, canonical dtypes).
     leaves = [x if isinstance(x, jax.Array) else jnp.asarray(x) for x in leaves]
     memo = (tree, tuple((x.shape, x.dtype, _weak(x), x.sharding) for x in leaves),
-            tuple(static.items()), _trace_context(), export_directory())
+            tuple(static.items()), _trace_context(), folder)
     if memo not in self.names:
-      self.names[memo] = self._path(leaves, tree, static)
+      self.names[memo] = self._path(folder, leaves, tree, static)
     path = self.names[memo]
     if path is None:
       return self.jitted(*args, **kwargs)
@@ -321,10 +322,9 @@ class _Exported:
     self.names[memo] = None  # not kept in this process: jax.jit from now on
     return self.jitted(*args, **kwargs)
 
-  def _path(self, leaves, tree, static) -> str | None:
-    """The kept program's file for these arguments, or None where the call
-    cannot be keyed."""
-    folder = export_directory()
+  def _path(self, folder, leaves, tree, static) -> str | None:
+    """The kept program's file under ``folder`` for these arguments, or None
+    where the call cannot be keyed."""
     digest, settings = source_digest(), _trace_settings()
     if (not _can_serialise() or digest is None or settings is None or '://' in folder
         or len(_devices(leaves)) > 1 or patched()):
