@@ -305,7 +305,7 @@ def _train(params, directory, opts, real, settings, progress):
   k_init, key = jax.random.split(jax.random.key(opts.seed))
   enc_vars = init_variables(k_init, params, settings)
   state = {'encoder': enc_vars, 'opt': optimizer(opts).init(enc_vars)}
-  mngr = checkpoint.manager(directory, keep=2)
+  mngr = checkpoint.manager(directory, keep=2, cleanup_tmp=True)  # held alone
   state, step = checkpoint.restore_latest(mngr, state)
   start = 0 if step is None else step
   params = params.replace(encoder_settings=settings)

@@ -100,6 +100,7 @@ def enable() -> str | None:
 EXPORT_SUFFIX = '.jaxexport'
 OWN_EXPORT_FOLDER = 'dusty_jax_export'  # inside a JAX cache directory a user named
 STALE_DAYS = 7  # folders of other sources unused this long are removed
+STALE_TMP_S = 3600  # a write's .tmp file this old was cut short (a kill)
 _PACKAGE = os.path.dirname(os.path.abspath(__file__))
 _VERSIONED = ('numpy', 'jax', 'jaxlib', 'flax', 'optax', 'ml_dtypes')
 
@@ -377,8 +378,9 @@ def _remove(path: str):
 
 
 def _write(path: str, data: bytes):
-  """Writes ``data`` to ``path`` atomically. A new source's first program
-  also removes the folders of other sources unused for STALE_DAYS."""
+  """Writes ``data`` to ``path`` atomically, and removes the .tmp files of
+  writes cut short. A new source's first program also removes the folders of
+  other sources unused for STALE_DAYS."""
   folder = os.path.dirname(path)
   tmp = None
   try:
@@ -390,6 +392,10 @@ def _write(path: str, data: bytes):
       f.write(data)
     os.replace(tmp, path)
     tmp = None
+    limit = time.time() - STALE_TMP_S
+    for entry in os.scandir(folder):
+      if entry.name.endswith('.tmp') and entry.stat().st_mtime < limit:
+        _remove(entry.path)
   except OSError:  # a read-only or full cache: the program is still used
     pass
   finally:

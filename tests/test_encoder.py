@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import codec, encoder, generator, inversion, sampling
+from dusty_jax import checkpoint, codec, encoder, generator, inversion, sampling
 from dusty_jax.codec import ALPHA
 
 
@@ -157,6 +157,18 @@ def test_a_second_encoder_training_on_one_folder_is_refused(trained):
                        match=f'{re.escape(folder)} is in use.*pid {os.getpid()}'):
       encoder.train(params, folder, encoder.TrainOptions(steps=3, batch=4, w_real=0))
   assert sorted(os.listdir(folder)) == before
+
+
+def test_a_resumed_encoder_training_clears_a_save_cut_short(trained):
+  """A save cut short (a kill) leaves orbax's tmp folder; the next training
+  on the run, which holds the folder alone, removes it and resumes."""
+  from dusty_jax.tools import train_encoder
+  folder = os.path.join(trained, encoder.DIRECTORY, checkpoint.DIRECTORY)
+  assert os.path.isdir(os.path.join(folder, '3'))
+  cut = os.path.join(folder, '6.orbax-checkpoint-tmp-1')
+  os.makedirs(cut)
+  train_encoder.main(['--workdir', trained, '--steps', '3', '--batch', '4'])
+  assert sorted(os.listdir(folder)) == ['3']
 
 
 def test_bad_inputs_get_clear_errors(smoke_run, trained, tmp_path):

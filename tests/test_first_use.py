@@ -137,10 +137,18 @@ def test_a_traced_program_is_kept_and_read_back(kept_in, monkeypatch):
   path.write_bytes(b'torn')
   _same(_decode()(x, 'kitti'), want)
   assert path.stat().st_size > 100
-  # A new shape, dtype or static argument is another program, in its own file.
+  # A new shape, dtype or static argument is another program, in its own file;
+  # writing it removes the .tmp file of a write cut short, not one in progress.
+  cut, writing = path.parent / 'cut.tmp', path.parent / 'writing.tmp'
+  for f in (cut, writing):
+    f.write_bytes(b'part')
+  hours_ago = time.time() - 2 * xla_cache.STALE_TMP_S
+  os.utime(cut, (hours_ago, hours_ago))
   before = set(kept_in.rglob('*' + xla_cache.EXPORT_SUFFIX))
   _same(fn(x[:2], 'kitti'), codec.decode(x[:2], 'kitti'))
   (other,) = set(kept_in.rglob('*' + xla_cache.EXPORT_SUFFIX)) - before
+  assert not cut.exists() and writing.exists()
+  writing.unlink()
   _same(fn(x, 'kitti', 0.25), codec.decode(x, 'kitti', 0.25))
   _same(fn(x, 'mpo'), codec.decode(x, 'mpo'))
   assert len(_kept(kept_in)) == 4

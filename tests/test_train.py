@@ -156,16 +156,19 @@ def test_two_processes_agree_with_one(one_device_params, tmp_path):
 
 def test_resume_is_exact(smoke_run, tmp_path):
   config, workdir, final = smoke_run
-  # A run stopped at step 2 and resumed reaches step 4 with the same params.
+  # A run stopped at step 2 and resumed reaches step 4 with the same params;
+  # the tmp folder of a step-4 save cut short (a kill) is cleared first.
   config = config.copy_and_resolve_references()
   config.num_steps = 2
   other = str(tmp_path / 'resumed')
   trainer.train_and_evaluate(config, other, log=lambda m: None)
+  os.makedirs(os.path.join(other, 'checkpoints', '4.orbax-checkpoint-tmp-1'))
   config.num_steps = 4
   logs = []
   resumed = trainer.train_and_evaluate(config, other, log=logs.append)
   assert any('resumed from step 2' in l for l in logs)
   _assert_trees_close(parallel.to_host(resumed), final, rtol=1e-6, atol=1e-7)
+  assert sorted(os.listdir(os.path.join(other, 'checkpoints'))) == ['2', '4']
 
 
 def test_run_outputs(smoke_run):
