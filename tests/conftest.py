@@ -13,10 +13,11 @@ os.environ['XLA_FLAGS'] = (os.environ.get('XLA_FLAGS', '') +
                            f' --xla_force_host_platform_device_count=4 {FAST_COMPILE}').strip()
 os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 # Tests build the same small programs many times: cache compilations on disk
-# (shared with the subprocesses the tests start).
+# (shared with the subprocesses the tests start; one folder per user, who
+# owns it).
 import tempfile  # noqa: E402
-os.environ.setdefault('JAX_COMPILATION_CACHE_DIR',
-                      os.path.join(tempfile.gettempdir(), 'dusty_jax_test_xla_cache'))
+os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', os.path.join(
+    tempfile.gettempdir(), f'dusty_jax_test_xla_cache-{getattr(os, "getuid", lambda: 0)()}'))
 os.environ.setdefault('JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS', '0.5')
 
 import numpy as np  # noqa: E402

@@ -1,6 +1,7 @@
 """The command lines: every error a user's input causes is one line on stderr
 and a non-zero exit; Ctrl-C and a full disk say what a rerun does."""
 
+import contextlib
 import logging
 import os
 import re
@@ -131,33 +132,49 @@ def test_bad_config_is_one_line(tmp_path, args, devices, status, says):
   assert not (tmp_path / 'w').exists()
 
 
-def _start_training(tmp_path, workdir, *extra, prefix=()):
+@contextlib.contextmanager
+def _training(tmp_path, workdir, *extra, prefix=()):
+  """A training that runs until stopped; killed on the way out, so that a
+  failed test leaves nothing running."""
   cmd = list(prefix) + [
       sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE, '--workdir', workdir,
       '--config.num_steps=100000', '--config.checkpoint_every=2',
       '--config.log_every=1', '--config.image_every=100000',
       '--config.data.num_synthetic=16'] + list(extra)
   # SIGINT as a terminal delivers it: a shell starting this suite in the
-  # background leaves it ignored, and Python then never raises
-  # KeyboardInterrupt.
-  return subprocess.Popen(cmd, env=_env(tmp_path), stdout=subprocess.PIPE,
-                          stderr=subprocess.PIPE, text=True,
-                          cwd=os.path.join(HERE, '..'),
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+  # background leaves it ignored, the child inherits that, and Python then
+  # never raises KeyboardInterrupt. (Set here, not in a preexec_fn: a fork
+  # of this threaded process must not run Python.)
+  ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+  if ignored:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+  try:
+    proc = subprocess.Popen(cmd, env=_env(tmp_path), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=os.path.join(HERE, '..'))
+  finally:
+    if ignored:
+      signal.signal(signal.SIGINT, signal.SIG_IGN)
+  try:
+    yield proc
+  finally:
+    proc.kill()
+    proc.wait()
+    proc.stdout.close()
+    proc.stderr.close()
 
 
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
   """Item 3: the step, the checkpoint a rerun resumes from; no traceback."""
   workdir = tmp_path / 'w'
-  proc = _start_training(tmp_path, str(workdir))
-  deadline = time.time() + 500
   saved = lambda: [int(s) for s in os.listdir(workdir / 'checkpoints') if s.isdigit()]
-  while not (workdir / 'checkpoints').is_dir() or max(saved(), default=0) < 4:
-    assert proc.poll() is None, proc.communicate()[1][-3000:]
-    assert time.time() < deadline, 'no checkpoint within the time allowed'
-    time.sleep(0.5)
-  proc.send_signal(signal.SIGINT)
-  _, err = proc.communicate(timeout=300)
+  with _training(tmp_path, str(workdir)) as proc:
+    deadline = time.time() + 500
+    while not (workdir / 'checkpoints').is_dir() or max(saved(), default=0) < 4:
+      assert proc.poll() is None, proc.communicate()[1][-3000:]
+      assert time.time() < deadline, 'no checkpoint within the time allowed'
+      time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
   assert proc.returncode == 130, err[-3000:]
   lines = _messages(err)
   assert 'Traceback' not in err and len(lines) == 1, err[-3000:]
@@ -186,9 +203,9 @@ def test_full_disk_during_a_checkpoint_is_one_line(tmp_path):
   disk.mkdir()
   workdir = str(disk / 'w')
   script = (f'mount -t tmpfs -o size=2m tmpfs {disk} && exec "$@"')
-  proc = _start_training(tmp_path, workdir, prefix=(
-      'unshare', '--mount', 'sh', '-c', script, 'sh'))
-  _, err = proc.communicate(timeout=600)
+  with _training(tmp_path, workdir, prefix=('unshare', '--mount', 'sh', '-c', script,
+                                           'sh')) as proc:
+    _, err = proc.communicate(timeout=600)
   line = _messages(err)
   assert proc.returncode == 1 and len(line) == 1, err[-3000:]
   m = re.fullmatch(r'error: no space left on device while writing checkpoint (\d+) in '

@@ -170,7 +170,7 @@ def test_a_lost_process_then_a_rerun_resumes_as_if_uninterrupted(tmp_path):
 
 def test_a_silent_process_ends_its_peer_within_peer_timeout(tmp_path):
   run = str(tmp_path / 'run')
-  procs = _train(tmp_path, run, '--config.num_steps=100000', '--peer_timeout=5')
+  procs = _train(tmp_path, run, '--config.num_steps=100000', '--peer_timeout=10')
   try:
     # The watch starts before the lock files are written.
     _wait_for(os.path.join(run, 'train.lock.1'), procs, run)
@@ -182,7 +182,7 @@ def test_a_silent_process_ends_its_peer_within_peer_timeout(tmp_path):
       p.wait()
   lines = _messages(_log(run))
   assert lines[-1].startswith(
-      'error: a process of this run was lost (process 1 gave no sign of life for 5 s); '), lines
+      'error: a process of this run was lost (process 1 gave no sign of life for 10 s); '), lines
   assert re.search(r'(no checkpoint was saved yet; rerun all 2 processes to start afresh|'
                    r'the last checkpoint is step \d+ in .*; rerun all 2 processes)$',
                    lines[-1]), lines[-1]
