@@ -1,6 +1,6 @@
 """Simulated-LiDAR speed: where a 64x256 scan's time goes, and the default data's.
 
-    python benchmarks/synthesize.py [--num 60] [--workers 2] [--baseline DIR] [--full]
+    python benchmarks/synthesize.py [--num 60] [--workers 2] [--baseline DIR] [--full] [--main]
 
 1. Phases, one process, CPU seconds (time.process_time) per scan, median over
    --num scans: building the scene, casting the rays (each ray caster), the
@@ -8,9 +8,14 @@
 2. Worker start-up: wall seconds from starting a pool of --workers spawned
    processes (spawned, as under JAX) until each has returned a result.
 3. With --full: the default data (synthetic.write_dataset, 2,000 + 200 + 200
-   scans, --workers processes) into a temporary directory: wall seconds, with
-   the time spent writing arrays and drawing the preview, and CPU seconds of
-   the parent and its workers together (what load does not stretch).
+   scans, --workers processes) into a temporary directory, JAX loaded in the
+   parent as under train: wall seconds, with the time spent drawing the
+   preview (and, in older trees, the parent's writing of the arrays: the
+   workers write them now), and CPU seconds of the parent and its workers
+   together (what load does not stretch); --rounds times per tree.
+4. With --main: the README's main command in a fresh cache, as a newcomer
+   runs it, from its start until the default data is written (its
+   meta.json), then stopped; --rounds times per tree.
 
 ``--baseline DIR`` (a checkout of older code, e.g. ``git worktree add
 /tmp/wt_sim f597033``) measures the same with DIR's dusty_jax, in
@@ -19,10 +24,12 @@ same load; the ratios are what to quote from a loaded machine.
 """
 
 import argparse
+import glob
 import json
 import multiprocessing
 import os
 import resource
+import signal
 import statistics
 import subprocess
 import sys
@@ -119,6 +126,30 @@ def _write(out: str, workers: int) -> dict:
               cpu_s=own2 - own + kids2 - kids)
 
 
+def _main_command(tree: str) -> float:
+  """Wall seconds from starting ``python -m dusty_jax.train --config
+  experiments/synthetic.py`` in ``tree`` with an empty cache until the
+  default data's meta.json exists; the command is then killed."""
+  with tempfile.TemporaryDirectory() as tmp:
+    env = dict(os.environ, DUSTY_JAX_CACHE=os.path.join(tmp, 'cache'), PYTHONPATH=tree)
+    env.pop('JAX_COMPILATION_CACHE_DIR', None)
+    meta = os.path.join(tmp, 'cache', 'synthetic', '*', 'meta.json')
+    t = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, '-m', 'dusty_jax.train', '--config',
+                             'experiments/synthetic.py', '--workdir', os.path.join(tmp, 'w')],
+                            cwd=tree, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+      while not glob.glob(meta):
+        if proc.poll() is not None:
+          raise RuntimeError(f'{tree}: the main command ended: {proc.stderr.read()[-2000:]}')
+        time.sleep(0.02)
+      return time.perf_counter() - t
+    finally:
+      os.killpg(proc.pid, signal.SIGKILL)
+      proc.communicate()
+
+
 def _run(tree: str, *args) -> dict:
   """One of the modes above in a subprocess, with ``tree``'s dusty_jax."""
   env = dict(os.environ, PYTHONPATH=tree)
@@ -136,6 +167,8 @@ def main():
   p.add_argument('--workers', type=int, default=os.cpu_count() or 1)
   p.add_argument('--baseline', default='', help='a checkout of older code')
   p.add_argument('--full', action='store_true', help='also time the default data')
+  p.add_argument('--main', action='store_true',
+                 help="also time the README's main command until its data is written")
   p.add_argument('--out', default=os.path.join(HERE, 'results', 'synthesize.json'))
   p.add_argument('--_phases', nargs=2, type=int, help=argparse.SUPPRESS)
   p.add_argument('--_startup', type=int, help=argparse.SUPPRESS)
@@ -181,13 +214,29 @@ def main():
           ', '.join(f'{k} {v:.1f}' for k, v in ms.items()) +
           f'; {a.workers} spawned workers start in {min(startup[name]):.2f} s')
   if a.full:
-    for name, tree in trees.items():
-      with tempfile.TemporaryDirectory() as out:
-        results['full'][name] = f = _run(tree, '--_write', out, a.workers)
-      print(f'{name:9s} default data (2,000 + 200 + 200 scans, {a.workers} workers): '
-            f'{f["total_s"]:.1f} s wall, of which writing {f["save_s"]:.1f} s, '
-            f'preview {f["preview_s"]:.1f} s; CPU {f["cpu_s"]:.1f} s (workers '
-            f'{f["workers_cpu_s"]:.1f} s)')
+    runs = {name: [] for name in trees}
+    for r in range(a.rounds):
+      for name, tree in trees.items():
+        with tempfile.TemporaryDirectory() as out:
+          runs[name].append(_run(tree, '--_write', out, a.workers))
+    for name in trees:
+      results['full'][name] = f = {k: statistics.median(run[k] for run in runs[name])
+                                   for k in runs[name][0]}
+      f['total_s_each'] = [run['total_s'] for run in runs[name]]
+      print(f'{name:9s} default data (2,000 + 200 + 200 scans, {a.workers} workers; median '
+            f'of {a.rounds}): {f["total_s"]:.1f} s wall, of which the parent writing '
+            f'{f["save_s"]:.1f} s, preview {f["preview_s"]:.1f} s; CPU {f["cpu_s"]:.1f} s '
+            f'(workers {f["workers_cpu_s"]:.1f} s)')
+  if a.main:
+    each = {name: [] for name in trees}
+    for r in range(a.rounds):
+      for name, tree in trees.items():
+        each[name].append(_main_command(tree))
+    results['main_command_s'] = {name: {'median': statistics.median(v), 'each': v}
+                                 for name, v in each.items()}
+    for name, v in each.items():
+      print(f'{name:9s} main command, start to the default data written (median of '
+            f'{a.rounds}): {statistics.median(v):.1f} s ({", ".join(f"{x:.1f}" for x in v)})')
   if a.baseline:
     before, after = results['phases_ms']['baseline'], results['phases_ms']['current']
     ratios = {'scan': before['scan'] / after['scan'], 'build': before['build'] / after['build'],
@@ -196,6 +245,9 @@ def main():
       full = results['full']
       ratios['default_data_wall'] = full['baseline']['total_s'] / full['current']['total_s']
       ratios['default_data_cpu'] = full['baseline']['cpu_s'] / full['current']['cpu_s']
+    if a.main:
+      main_s = results['main_command_s']
+      ratios['main_command'] = main_s['baseline']['median'] / main_s['current']['median']
     results['speedup'] = ratios
     print('baseline / current: ' + ', '.join(f'{k} {v:.2f}x' for k, v in ratios.items()))
   results['load_average_end'] = os.getloadavg()

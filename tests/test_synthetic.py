@@ -92,9 +92,15 @@ def test_write_dataset_through_prepare(tiny, tmp_path):
   prob = arrays.load_split(out, 'train', tiny, 'drop_prob')
   assert comp.shape == prob.shape == obs.shape
   assert os.path.isfile(os.path.join(out, 'preview.png'))
-  # Same scans with one worker (scene seeds do not depend on workers).
-  one, _, _ = synthetic.simulate(4, tiny, seed=30, progress=False)
-  np.testing.assert_array_equal(one, obs)
+  # Same scans with one worker (scene seeds do not depend on workers), which
+  # the workers wrote into the files themselves (no temporary file is left).
+  for want, got in zip(synthetic.simulate(4, tiny, seed=30, progress=False),
+                       (obs, comp, prob)):
+    np.testing.assert_array_equal(want, got)
+  assert not [f for f in os.listdir(out) if 'tmp' in f]
+  one = str(tmp_path / 'one')
+  synthetic.write_dataset(one, tiny, 2, seed=3, splits={'train': 2}, progress=False, workers=1)
+  np.testing.assert_array_equal(arrays.load_split(one, 'train', tiny), obs[:2])
   # The .bin files go through the real KITTI preparation unchanged.
   prepared = str(tmp_path / 'prepared')
   prepare.prepare('kitti', os.path.join(out, 'kitti'), prepared, sensor=tiny,

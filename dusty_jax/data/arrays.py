@@ -96,6 +96,16 @@ def save_array(path: str, arr: np.ndarray):
   os.replace(tmp, path)
 
 
+def empty_array(path: str, shape) -> int:
+  """Makes ``path`` a float32 .npy of ``shape`` (its data not yet written)
+  and returns the offset of its data in the file."""
+  np.lib.format.open_memmap(path, mode='w+', dtype=np.float32, shape=tuple(shape)).flush()
+  with open(path, 'rb') as f:
+    np.lib.format.read_magic(f)
+    np.lib.format.read_array_header_1_0(f)
+    return f.tell()
+
+
 class SplitWriter:
   """Writes an (N, H, W) float32 split scan by scan, so memory does not grow
   with N: at most ``capacity`` scans, into a temporary .npy (header from
@@ -108,12 +118,7 @@ class SplitWriter:
     self.path, self.tmp = path, path + '.tmp.npy'
     self.shape, self.count = tuple(shape), 0
     self.capacity = capacity
-    np.lib.format.open_memmap(self.tmp, mode='w+', dtype=np.float32,
-                              shape=(capacity,) + self.shape).flush()
-    with open(self.tmp, 'rb') as f:
-      np.lib.format.read_magic(f)
-      np.lib.format.read_array_header_1_0(f)
-      self.offset = f.tell()
+    self.offset = empty_array(self.tmp, (capacity,) + self.shape)
     self.file = open(self.tmp, 'r+b')
     self.file.seek(self.offset)
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 
 import numpy as np
 
@@ -165,6 +166,23 @@ def render_arrays(job: tuple[int, SensorSpec]):
   in synthetic.simulate (here, so that a worker does not import JAX)."""
   s = render_scan(*job)
   return s.depth, s.complete, s.drop_prob
+
+
+def render_into(job: tuple[int, SensorSpec, tuple[str, str, str], int, int]):
+  """Writes ``render_arrays((seed, sensor))`` as row ``row`` of three
+  (N, H, W) float32 .npy files ``paths`` (observed, complete, drop_prob),
+  whose data start ``offset`` bytes in: a worker's task in
+  synthetic.write_dataset, which then receives nothing but the row. (Plain
+  writes: a full disk raises OSError here, where a memory map's write would
+  kill the worker.)"""
+  seed, sensor, paths, offset, row = job
+  for path, arr in zip(paths, render_arrays((seed, sensor))):
+    fd = os.open(path, os.O_WRONLY)
+    try:
+      os.pwrite(fd, arr.tobytes(), offset + row * arr.nbytes)
+    finally:
+      os.close(fd)
+  return row
 
 
 def to_sensor_order(depth: np.ndarray, sensor: SensorSpec) -> np.ndarray:

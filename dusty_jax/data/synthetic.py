@@ -12,6 +12,7 @@ import contextlib
 import multiprocessing
 import os
 import sys
+import tempfile
 import types
 
 import numpy as np
@@ -26,9 +27,9 @@ _CHUNK = 8
 
 
 @contextlib.contextmanager
-def _rendered(jobs: list, workers: int):
-  """Yields the (observed, complete, drop_prob) of each (seed, sensor) job,
-  in order, rendered by ``workers`` processes.
+def _rendered(jobs: list, workers: int, task=simulated_lidar.render_arrays):
+  """Yields ``task(job)`` of each job, in order (by default the (observed,
+  complete, drop_prob) of each (seed, sensor)), run by ``workers`` processes.
 
   They are forked where JAX is not loaded and spawned where it is (forking a
   process that runs JAX's threads can deadlock). A spawned worker imports
@@ -38,7 +39,7 @@ def _rendered(jobs: list, workers: int):
   from stdin could not give it at all.
   """
   if workers <= 1 or len(jobs) <= 1:
-    yield map(simulated_lidar.render_arrays, jobs)
+    yield map(task, jobs)
     return
   if 'jax' in sys.modules:
     with _without_main():  # the workers start here, in Pool()
@@ -46,7 +47,7 @@ def _rendered(jobs: list, workers: int):
   else:
     pool = multiprocessing.get_context('fork').Pool(workers)
   with pool:
-    yield pool.imap(simulated_lidar.render_arrays, jobs, chunksize=_CHUNK)
+    yield pool.imap(task, jobs, chunksize=_CHUNK)
 
 
 @contextlib.contextmanager
@@ -109,24 +110,46 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
                       'test': max(num // 10, 1)}
   os.makedirs(out, exist_ok=True)
   seq = {'train': 0, 'val': 8, 'test': 11}
-  # One pool for all splits: the workers go on with the next split while
-  # this process writes the last one.
-  jobs = [job for split, n in splits.items()
-          for job in _jobs(n, sensor, seed * 10 + SPLIT_SEED_OFFSET[split])]
-  with _rendered(jobs, workers) as results:
+  # Each split's three arrays are made here as temporary .npy files, and the
+  # workers write each scan into them; one pool for all splits. The files
+  # are this call's own: the processes of a multi-process training simulate
+  # the same data into the same folder at once, each moving its files into
+  # place whole.
+  paths = {split: tuple(arrays.split_path(out, split, kind) for kind in ('', 'complete',
+                                                                         'drop_prob'))
+           for split in splits}
+  tmps = {}
+  jobs = []
+  try:
     for split, n in splits.items():
-      obs, complete, prob = _collect(results, n, sensor, progress, split)
-      arrays.save_array(arrays.split_path(out, split), obs)
-      arrays.save_array(arrays.split_path(out, split, 'complete'), complete)
-      arrays.save_array(arrays.split_path(out, split, 'drop_prob'), prob)
-      if bins:
-        # Here: kitti imports JAX (through unfolding and codec); at the top,
-        # it would make every pool of _rendered spawn rather than fork.
-        from dusty_jax.data import kitti
-        for i, d in enumerate(obs):
-          kitti.write_bin(os.path.join(out, 'kitti', 'sequences',
-                                       f'{seq[split]:02d}', 'velodyne',
-                                       f'{i:06d}.bin'), simulated_lidar.to_sensor_order(d, sensor))
+      for path in paths[split]:
+        fd, tmps[path] = tempfile.mkstemp(dir=out, prefix=os.path.basename(path) + '.',
+                                          suffix='.tmp.npy')
+        os.close(fd)
+        offset = arrays.empty_array(tmps[path], (n,) + sensor.shape)
+      jobs += [(s, sensor_, tuple(tmps[p] for p in paths[split]), offset, i)
+               for i, (s, sensor_) in enumerate(_jobs(n, sensor, seed * 10 +
+                                                      SPLIT_SEED_OFFSET[split]))]
+    with _rendered(jobs, workers, simulated_lidar.render_into) as done:
+      for split, n in splits.items():
+        for _ in tqdm.trange(n, desc=split, unit='scan', file=sys.stderr,
+                             disable=not progress):
+          next(done)
+    for path, tmp in tmps.items():
+      os.replace(tmp, path)
+  finally:
+    for tmp in tmps.values():
+      if os.path.exists(tmp):
+        os.remove(tmp)
+  if bins:
+    # Here: kitti imports JAX (through unfolding and codec); at the top, it
+    # would make every pool of _rendered spawn rather than fork.
+    from dusty_jax.data import kitti
+    for split in splits:
+      for i, d in enumerate(np.load(paths[split][0], mmap_mode='r')):
+        kitti.write_bin(os.path.join(out, 'kitti', 'sequences', f'{seq[split]:02d}',
+                                     'velodyne', f'{i:06d}.bin'),
+                        simulated_lidar.to_sensor_order(np.asarray(d), sensor))
   arrays.save_array(os.path.join(out, arrays.ANGLES), sensor.nominal_angles())
   save_preview(os.path.join(out, 'preview.png'), out, sensor)
   meta = {'dataset': 'synthetic', 'sensor': sensor.name,
