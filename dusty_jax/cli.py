@@ -101,7 +101,8 @@ def run(fn, *args):
 
 def unknown_field(config, path: str) -> str | None:
   """The message for a config field ``path`` (``'data.dri'``) that
-  ``config`` does not have, with the nearest known name; None if it has it."""
+  ``config`` does not have, with the nearest known name, or that is a group
+  of fields; None if it is a field of ``config``."""
   node, done = config, []
   for part in path.split('.'):
     if isinstance(node, (config_dict.ConfigDict, dict)) and part in node:
@@ -114,7 +115,23 @@ def unknown_field(config, path: str) -> str | None:
     close = difflib.get_close_matches(part, [str(k) for k in node.keys()], n=1)
     hint = f'; did you mean {".".join(done + close)}?' if close else ''
     return f'unknown config field {path}{hint}'
+  if isinstance(node, config_dict.ConfigDict):
+    presets = (' (the drops presets: --config experiments/study.py:MODEL,PRESET,SCALE)'
+               if path == 'drops' else '')
+    return (f'config field {path} is a group of fields ({", ".join(node.keys())}): '
+            f'set them one by one, e.g. --config.{path}.{next(iter(node.keys()))}=...'
+            f'{presets}')
   return None
+
+
+def _fail_on_unknown_field(argv, values, config: str):
+  """Exits with :func:`unknown_field`'s line for the first overridden field
+  that the config file's config lacks or holds as a group, if any."""
+  loaded = _load_config(_config_file(argv, values, config))
+  for path in _config_paths(argv, config):
+    msg = loaded is not None and unknown_field(loaded, path)
+    if msg:
+      fail(msg, USAGE)
 
 
 def _config_paths(argv, name: str):
@@ -139,17 +156,20 @@ def parse_flags(argv, values: flags.FlagValues = flags.FLAGS,
   try:
     rest = values(argv)
   except flags.Error as e:
+    named = config and _config_file(argv, values, config)
+    cause = named and 'Error whilst parsing config file' in str(e) and _load_config(
+        named, errors=True)
+    if isinstance(cause, Exception):
+      # ml_collections' message holds the traceback; the error alone says it.
+      fail(f'--{config}={named}: {_message(cause)}', USAGE)
+    _fail_on_unknown_field(argv, values, config)
     fail(f'{e} (see --help)', USAGE)
   except (AttributeError, KeyError, TypeError, ValueError) as e:
     if config is None:
       raise
     # ml_collections' override of a config field that does not exist (or a
     # config file that does not load) is not a flags.Error.
-    loaded = _load_config(_config_file(argv, values, config))
-    for path in _config_paths(argv, config):
-      msg = loaded is not None and unknown_field(loaded, path)
-      if msg:
-        fail(msg, USAGE)
+    _fail_on_unknown_field(argv, values, config)
     fail(f'--{config}: {_message(e)}', USAGE)
   path = config and _config_file(argv, values, config)
   if path and not os.path.isfile(path.partition(':')[0]):
@@ -160,7 +180,7 @@ def parse_flags(argv, values: flags.FlagValues = flags.FLAGS,
 
 # The repository's experiments/ (beside the package): a relative --config
 # path not found in the working directory is looked up there, so that
-# `--config experiments/quick.py` works from any directory.
+# `--config experiments/synthetic.py` works from any directory.
 EXPERIMENTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                            'experiments')
 
@@ -207,10 +227,10 @@ def _config_file(argv, values, name):
     return None
 
 
-def _load_config(path):
+def _load_config(path, errors: bool = False):
   """The config file's get_config(), as loaded before any override
   (ml_collections leaves the flag's value None when an override fails);
-  None if it does not load."""
+  if it does not load, None, or with ``errors`` the exception."""
   if not path:
     return None
   path, _, arg = path.partition(':')
@@ -219,5 +239,5 @@ def _load_config(path):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module.get_config(arg) if arg else module.get_config()
-  except Exception:  # the override error, already in hand, says enough then.
-    return None
+  except Exception as e:  # the override error, already in hand, says enough then.
+    return e if errors else None

@@ -110,8 +110,15 @@ def _missing(c, want, prefix='') -> str | None:
   return None
 
 
+IMPLS = ('', 'matmul', 'xla')  # config field impl (layers.py)
+# The drops options that act on a measurability, with the value that is off.
+DROPS_OFF = (('rate_weight', 0), ('mask_bias', 0), ('ring_bias', False),
+             ('mask_detached', False), ('depth_levels', False))
+
+
 def validate(c) -> None:
-  """Checks a config before any work; raises ConfigError naming the field.
+  """Checks a config before any work; raises ConfigError naming the field
+  (the augmentation fields: trainer.check_augment, which owns them).
   The one check: what is built from a valid config reads its fields as
   they are (every field of :func:`default` is present)."""
   missing = _missing(c, default())
@@ -149,6 +156,9 @@ def validate(c) -> None:
   need(c.ema_halflife_kimg >= 0, 'ema_halflife_kimg', 'must be >= 0')
   need(c.drop_const <= -1.0, 'drop_const',
        'must be <= -1 (inside the depth range a drop would read as a surface)')
+  need(c.impl in IMPLS, 'impl', "must be '' (per backend: matmul on CPU, xla elsewhere), "
+       "'matmul' or 'xla'")
+  need(c.eqlr in models.EQLR, 'eqlr', f"must be one of {', '.join(map(repr, models.EQLR))}")
   preset = c.sensor.preset
   if preset and preset not in sensor_lib.PRESETS:
     raise ConfigError(f'config field sensor.preset={preset!r}: known presets are '
@@ -168,11 +178,12 @@ def validate(c) -> None:
   need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
             'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
-  acting = [f for f, off in (('rate_weight', 0), ('mask_bias', 0),
-                             ('ring_bias', False), ('mask_detached', False),
-                             ('depth_levels', False)) if d[f] != off]
+  acting = [f for f, off in DROPS_OFF if d[f] != off]
   if acting:  # the first option set names the error
-    need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act on')
+    off = dict(DROPS_OFF)[acting[0]]
+    need_drop(model_has_mask, acting[0], f'the {c.model} model has no measurability to act '
+              f'on: set drops.{acting[0]}={off!r}, or train it with --config '
+              f'experiments/study.py:{c.model}')
 
 
 # Runs written before these options existed trained with what is now the

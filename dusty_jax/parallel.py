@@ -313,6 +313,9 @@ def hold_workdir(workdir: str):
   one line naming the holder, before anything is written. A directory it
   made, left holding nothing but lock files (a training that failed
   before writing), is removed again."""
+  if os.path.exists(workdir) and not os.path.isdir(workdir):
+    raise errors.UserError(f'{workdir}: a file, not a directory; give a run directory '
+                           '(a new one, or a run to resume)')
   made = not os.path.isdir(workdir)
   os.makedirs(workdir, exist_ok=True)
   k = jax.process_index()

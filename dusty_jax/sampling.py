@@ -30,6 +30,9 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   Compiled (jit) once per shape; inside other jitted code it inlines.
   """
+  if jnp.ndim(z) != 2 or jnp.shape(z)[1] != params.latent_dim:
+    raise ValueError(f'z of shape {jnp.shape(z)}: expected latents (B, {params.latent_dim}), '
+                     "B of them in this generator's latent_dim")
   xla_cache.enable()
   return _generate(params, z, key, train, impl)
 

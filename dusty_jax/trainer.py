@@ -411,6 +411,19 @@ def _as_trained(config):
   return saved
 
 
+def check_augment(config):
+  """configs.validate for the augmentation fields (which configs, read by
+  loading a generator, leaves to augment.py's names)."""
+  def need(ok, field, why):
+    if not ok:
+      raise configs.ConfigError(f'config field {field}={config[field]!r}: {why}')
+  need(config.augment_style in augment.STYLES, 'augment_style',
+       f"must be one of {', '.join(map(repr, augment.STYLES))}")
+  unknown = [p for p in config.augment.split(',') if p and p not in augment.FNS]
+  need(not unknown, 'augment', unknown and f'{unknown[0]!r} is no augmentation; give a '
+       f"comma-separated list of {', '.join(augment.FNS)} ('' for none)")
+
+
 def train_and_evaluate(config, workdir: str, log=print,
                        peer_timeout: float = parallel.PEER_TIMEOUT_S) -> TrainState:
   """Trains from scratch or resumes from the latest checkpoint in ``workdir``.
@@ -421,6 +434,7 @@ def train_and_evaluate(config, workdir: str, log=print,
   checkpoint a rerun of all processes resumes from (parallel.PeerWatch).
   """
   configs.validate(config)
+  check_augment(config)
   watch = parallel.PeerWatch(peer_timeout, functools.partial(_peer_lost, workdir))
   try:
     with parallel.hold_workdir(workdir):

@@ -116,6 +116,16 @@ BAD = [
     (['--config=nonexistent.py'], 1, 2, r'nonexistent\.py: no such config file'),
     (['--nosuchflag'], 1, 2, r"Unknown command line flag 'nosuchflag'"),
     (['extra'], 1, 2, r'unexpected arguments'),
+    ([f'--config={os.path.join(os.path.dirname(SMOKE), "study.py")}:dusty1,lvls'], 1, 2,
+     r"study\.py:dusty1,lvls: unknown study preset 'lvls'; known: authors, levels, dips$"),
+    (['--config.impl=XLA'], 1, 2, r"impl='XLA': must be '' .*, 'matmul' or 'xla'$"),
+    (['--config.augment=cutout,flip'], 1, 2, r"augment='cutout,flip': 'flip' is no augm"),
+    (['--config.drops=dips'], 1, 2,
+     r'drops is a group of fields .* \(the drops presets: --config experiments/study\.py:'),
+    (['--config.model=baseline', '--config.drops.depth_levels=True'], 1, 2,
+     r'set drops\.depth_levels=False, or train it with --config experiments/study\.py:baseline'),
+    ([lambda t: (t / 'f').write_text('') or f'--workdir={t / "f"}'], 1, 1,
+     r'/f: a file, not a directory; give a run directory'),
 ]
 
 

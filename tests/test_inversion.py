@@ -189,6 +189,9 @@ def test_bad_inputs_get_clear_errors(gen, tiny):
     inversion.invert(gen, t, key=3, num_steps=2)
   with pytest.raises(ValueError, match='num=-1'):
     sampling.sample(gen, jax.random.key(0), -1)
+  with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents \(B, '
+                     rf'{gen.latent_dim}\)'):
+    sampling.generate(gen, np.zeros((2, 5)), jax.random.key(1))
   other = gen.replace(angles=jnp.zeros((2, 8, 8)))
   with pytest.raises(ValueError, match='angles of shape'):
     sampling.sample(other, jax.random.key(0), 2)
@@ -219,6 +222,23 @@ def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
   (tmp_path / 'a.npy').unlink()
   with pytest.raises(ValueError, match='none of 2 input files could be read'):
     scan_files.read_scans(str(tmp_path), tiny, log=logs.append)
+  # A file given alone that is no scan file is named, with what it is.
+  np.savez(tmp_path / 'g.npz', depth=good)
+  np.save(tmp_path / 'o.npy', np.array([{'depth': 1}], dtype=object))
+  (tmp_path / 'notes.txt').write_text('hello')
+  for name, says in [('g.npz', 'not a scan file; give KITTI .bin files or .npy'),
+                     ('o.npy', 'not a .npy array of numbers'),
+                     ('notes.txt', 'not a scan file')]:
+    logs = []
+    with pytest.raises(ValueError, match='none of 1 input files'):
+      scan_files.read_scans(str(tmp_path / name), tiny, log=logs.append)
+    assert logs[0].startswith(f'skipped: {tmp_path / name}: {says}'), logs
+  # A .npy that is a .npz archive inside.
+  os.replace(tmp_path / 'g.npz', tmp_path / 'z.npy')
+  logs = []
+  with pytest.raises(ValueError, match='none of 1 input files'):
+    scan_files.read_scans(str(tmp_path / 'z.npy'), tiny, log=logs.append)
+  assert logs[0] == f'skipped: {tmp_path / "z.npy"}: a .npz archive, not a .npy array of metric depth'
 
 
 # The schedule and the projection before they were optax's, kept as the
@@ -342,6 +362,9 @@ def test_empty_in_empty_out(gen):
   assert set(rec) >= set(out)
   with pytest.raises(ValueError, match='num=-1'):
     sampling.sample(gen, jax.random.key(0), -1)
+  with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents \(B, '
+                     rf'{gen.latent_dim}\)'):
+    sampling.generate(gen, np.zeros((2, 5)), jax.random.key(1))
 
 
 def _real_and_simulated_depths(sensor):

@@ -30,6 +30,21 @@ def no_return_reason(depth: np.ndarray, sensor: SensorSpec) -> str | None:
           f'{sensor.max_depth}) m (values in [{lo:.3g}, {hi:.3g}])')
 
 
+def _load_npy(path: str) -> np.ndarray:
+  """The array of a .npy file; ValueError naming the file for anything else."""
+  if not path.endswith('.npy'):
+    raise ValueError(f'{path}: not a scan file; give KITTI .bin files or .npy '
+                     'files of metric depth')
+  try:
+    arr = np.load(path, allow_pickle=False)
+  except ValueError:  # pickled objects, or not an array file at all
+    raise ValueError(f'{path}: not a .npy array of numbers (metric depth)') from None
+  if not isinstance(arr, np.ndarray):
+    arr.close()
+    raise ValueError(f'{path}: a .npz archive, not a .npy array of metric depth')
+  return arr
+
+
 def read_scans(path: str, sensor: SensorSpec, log=print):
   """[(name, metric depth (H, W))] from a file or a directory of files.
 
@@ -56,7 +71,7 @@ def read_scans(path: str, sensor: SensorSpec, log=print):
         depth, _ = kitti.load_scan(f, sensor)
         scans = [(stem, f, depth)]
       else:
-        arr = np.load(f, allow_pickle=False)
+        arr = _load_npy(f)
         if arr.shape[-2:] != sensor.shape or arr.ndim not in (2, 3):
           raise ValueError(f'{f}: expected metric depth of shape (H, W) or '
                            f'(N, H, W) with H, W = {sensor.shape}, got {arr.shape}')

@@ -9,8 +9,9 @@ table, and ``meta``, a JSON string of the sensor, the model settings, the
 tolerance and where the weights came from (generator.export writes them).
 They were trained on simulated HDL-64E scenes, not on real data: by
 ``benchmarks/study.py`` (see benchmarks/results/study.md), and sim-dusty1 by
-the main command (experiments/synthetic.py) and its encoder; each file's
-``training`` record says which.
+the main command (experiments/synthetic.py) and its encoder. Each file's
+``source`` says which; sim-dusty1's and sim-dusty2's also carry a
+``training`` record (config, drops options, encoder options).
 """
 
 from __future__ import annotations

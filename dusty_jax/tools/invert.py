@@ -42,8 +42,9 @@ def main(argv=None):
   flags.DEFINE_string('workdir', None, tools.model_help('the generator'),
                       flag_values=f, required=True)
   flags.DEFINE_string('input', None, '.bin/.npy file or directory', flag_values=f)
-  flags.DEFINE_string('split', None, 'evaluate over this prepared split instead',
-                      flag_values=f)
+  flags.DEFINE_enum('split', None, ['train', 'val', 'test'],
+                    "evaluate over this prepared split of the run's dataset instead",
+                    flag_values=f)
   flags.DEFINE_integer('num', 100, 'scans of --split', lower_bound=1, flag_values=f)
   flags.DEFINE_string('corrupt', '', 'drop:F, beams:K or noise:S', flag_values=f)
   flags.DEFINE_string('out', 'inversion', 'output folder', flag_values=f)
@@ -90,6 +91,8 @@ def run(a):
 
   if bool(a.input) == bool(a.split):
     raise ValueError('give exactly one of --input and --split')
+  if os.path.exists(a.out) and not os.path.isdir(a.out):
+    raise ValueError(f'--out={a.out}: a file, not a folder; give a folder for the results')
   if a.corrupt:
     corrupt.parse(a.corrupt)
   params, config = tools.load_model(a.workdir)
