@@ -31,8 +31,9 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   Compiled (jit) once per shape; inside other jitted code it inlines.
   """
   if jnp.ndim(z) != 2 or jnp.shape(z)[1] != params.latent_dim:
-    raise ValueError(f'z of shape {jnp.shape(z)}: expected latents (B, {params.latent_dim}), '
-                     "B of them in this generator's latent_dim")
+    raise ValueError(f'z of shape {jnp.shape(z)}: expected latents of shape (B, '
+                     f"{params.latent_dim}), {params.latent_dim} being this generator's "
+                     'latent_dim')
   xla_cache.enable()
   return _generate(params, z, key, train, impl)
 

@@ -412,8 +412,8 @@ def _as_trained(config):
 
 
 def check_augment(config):
-  """configs.validate for the augmentation fields (which configs, read by
-  loading a generator, leaves to augment.py's names)."""
+  """configs.validate's check of the augmentation fields; here, since
+  loading a generator reads configs, which must not import augment.py."""
   def need(ok, field, why):
     if not ok:
       raise configs.ConfigError(f'config field {field}={config[field]!r}: {why}')

@@ -12,8 +12,8 @@ import contextlib
 import multiprocessing
 import os
 import sys
-import tempfile
 import types
+import uuid
 
 import numpy as np
 import tqdm
@@ -122,10 +122,8 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
   jobs = []
   try:
     for split, n in splits.items():
-      for path in paths[split]:
-        fd, tmps[path] = tempfile.mkstemp(dir=out, prefix=os.path.basename(path) + '.',
-                                          suffix='.tmp.npy')
-        os.close(fd)
+      for path in paths[split]:  # (one shape: one data offset for the three)
+        tmps[path] = f'{path}.{uuid.uuid4().hex}.tmp.npy'
         offset = arrays.empty_array(tmps[path], (n,) + sensor.shape)
       jobs += [(s, sensor_, tuple(tmps[p] for p in paths[split]), offset, i)
                for i, (s, sensor_) in enumerate(_jobs(n, sensor, seed * 10 +
