@@ -189,8 +189,8 @@ def test_bad_inputs_get_clear_errors(gen, tiny):
     inversion.invert(gen, t, key=3, num_steps=2)
   with pytest.raises(ValueError, match='num=-1'):
     sampling.sample(gen, jax.random.key(0), -1)
-  with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents \(B, '
-                     rf'{gen.latent_dim}\)'):
+  with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents of shape '
+                     rf'\(B, {gen.latent_dim}\)'):
     sampling.generate(gen, np.zeros((2, 5)), jax.random.key(1))
   other = gen.replace(angles=jnp.zeros((2, 8, 8)))
   with pytest.raises(ValueError, match='angles of shape'):
@@ -362,8 +362,8 @@ def test_empty_in_empty_out(gen):
   assert set(rec) >= set(out)
   with pytest.raises(ValueError, match='num=-1'):
     sampling.sample(gen, jax.random.key(0), -1)
-  with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents \(B, '
-                     rf'{gen.latent_dim}\)'):
+  with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents of shape '
+                     rf'\(B, {gen.latent_dim}\)'):
     sampling.generate(gen, np.zeros((2, 5)), jax.random.key(1))
 
 

@@ -37,13 +37,20 @@ def forms(record: dict) -> dict:
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-  p.add_argument('--seeds', required=True, help="calibrated_models.py's JSON over seeds")
+  p.add_argument('--seeds', required=True,
+                 help="calibrated_models.py's JSON over seeds (several, comma-separated: "
+                      'their forms side by side, of one split)')
   p.add_argument('--metrics', default='', help="a run's metrics.jsonl (drop rate panel)")
   p.add_argument('--label', default='paper width, faithful (H200)')
   p.add_argument('--out', required=True, help='the PNG to write')
   a = p.parse_args(argv)
-  with open(a.seeds) as f:
-    record = json.load(f)
+  records = []
+  for path in a.seeds.split(','):
+    with open(path) as f:
+      records.append(json.load(f))
+  if len({r['split'] for r in records}) > 1:
+    raise SystemExit(f'--seeds: records of several splits ({a.seeds})')
+  record = {**records[0], 'models': {k: v for r in records for k, v in r['models'].items()}}
   by_form = forms(record)
   for form, row in by_form.items():
     print(form + ': ' + ', '.join(f'{k} {np.mean(v):.3f} +- {np.std(v, ddof=1):.3f}'
