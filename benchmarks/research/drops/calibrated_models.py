@@ -89,8 +89,8 @@ def calibrate_on_inversions(params, train, steps: int, batch: int = 64):
   """
   import jax.numpy as jnp
   from dusty_jax import codec, evaluation, levels
-  if params.model != 'dusty1':
-    raise ValueError('calibrate_on_inversions: DUSty-I only (a pixel logit alone)')
+  if not params.variant.has_measurability or params.variant.out_channels != 2:
+    raise ValueError('calibrate_on_inversions: DUSty-I only (depth and a pixel logit alone)')
   sensor, h, nb = params.sensor, params.sensor.shape[0], levels.BINS
   logit, index, gate, keep = [], [], [], []
   for _, d, _, _, res in evaluation.restore_batches(params, train, num_steps=steps,
