@@ -61,9 +61,9 @@ class DropOptions:
       generated returns (:func:`dip_penalty`): a checkerboard of far pixels
       that looks like drops to D, which real surfaces hardly have.
     depth_levels: after training, the EMA generator's drop level is fitted
-      per (ring, depth) cell to the training split's first 1,024 scans
-      (levels.calibrate) and kept in the run (levels.FILE), which loading
-      it applies. Training itself is unchanged.
+      per (ring, depth) cell to inversions of the training split's first
+      256 scans (evaluation.fit_levels) and kept in the run (levels.FILE),
+      which loading it applies. Training itself is unchanged.
   """
   mask_bias: float = 0.0
   ring_bias: bool = False

@@ -10,14 +10,15 @@ scans, whose dropped depth is unknown, and generated ones are binned the
 same way.
 
 :func:`calibrate` fits, after training, one logit offset per cell to the
-generator's measurability, so that its samples keep in each cell the share of
-pixels the training data keeps there (:func:`keep_rate`), the generator's
-x_tilde deciding the cells. The measurability still ranks the pixels within
-a cell. The offsets are the generator's ``depth_levels`` variable
-(models.ModelSettings.depth_levels); a run directory keeps them in
-:data:`FILE` (generator.load applies them).
+generator's measurability, so that on GAN inversions of training scans each
+cell keeps the share of pixels those scans keep there (its x_tilde deciding
+the cells, as when a measurability is scored against held-out scans). The
+measurability still ranks the pixels within a cell. The offsets are the
+generator's ``depth_levels`` variable (models.ModelSettings.depth_levels); a
+run directory keeps them in :data:`FILE` (generator.load applies them).
 benchmarks/research/drops/README.md ("Placement: drop levels per (ring,
-depth) cell") measures what they change.
+depth) cell"; "Levels fitted to inversions, not to samples") measures what
+they change.
 """
 
 from __future__ import annotations
@@ -82,27 +83,16 @@ def of_x_tilde(x_tilde, sensor: SensorSpec):
   return cells(x, x > codec.ALPHA, sensor)
 
 
-_cells_of_scans = jax.jit(lambda x, sensor: cells(x, x > codec.ALPHA, sensor),
-                          static_argnums=1)
-
-
-def keep_rate(depth, sensor: SensorSpec, batch: int = 64):
+def observed_keep(index, keep, h: int):
   """(table (H, BINS), ring (H,)): the share of pixels that returned a point
-  in each cell and in each ring of the metric depth scans ``depth`` (N, H,
-  W; 0 or out of range: dropped), each cell's rate pulled towards its ring's
+  (``keep``) in each cell (``index``, as :func:`cells` gives) and in each
+  ring of scans with ``h`` rings, each cell's rate pulled towards its ring's
   by PSEUDO_COUNT pixels (a cell few pixels fall in gets about its ring's)."""
-  depth = np.asarray(depth, np.float32)
-  if not len(depth):
-    raise ValueError('keep_rate: no scans to count returns in')
-  h = depth.shape[1]
-  kept, seen = np.zeros(h * BINS), np.zeros(h * BINS)
-  for i in range(0, len(depth), batch):
-    d = depth[i:i + batch]
-    keep = np.asarray(codec.valid_depth(d, sensor), np.float64).ravel()
-    index = np.asarray(_cells_of_scans(codec.encode(d, sensor), sensor)).ravel()
-    kept += np.bincount(index, keep, minlength=h * BINS)
-    seen += np.bincount(index, minlength=h * BINS)
-  ring = kept.reshape(h, BINS).sum(1) / seen.reshape(h, BINS).sum(1)
+  index = np.asarray(index).ravel()
+  keep = np.asarray(keep, np.float64).ravel()
+  kept = np.bincount(index, keep, minlength=h * BINS)
+  seen = np.bincount(index, minlength=h * BINS)
+  ring = kept.reshape(h, BINS).sum(1) / np.maximum(seen.reshape(h, BINS).sum(1), 1)
   table = (kept + PSEUDO_COUNT * np.repeat(ring, BINS)) / (seen + PSEUDO_COUNT)
   return table.reshape(h, BINS), ring
 
@@ -119,54 +109,66 @@ def _bisect(keep, target, iterations: int):
   return (lo + hi) / 2
 
 
-def calibrate(params, depth, num: int = 256, seed: int = 0, iterations: int = 40,
-              rings: bool = True):
-  """``params`` (a generator.GeneratorParams with a measurability) with its
-  drop level fitted to the metric depth scans ``depth`` (the training split).
+def calibrate(params, depth, latents, iterations: int = 40, batch: int = 64):
+  """``params`` (a generator.GeneratorParams with a measurability) with drop
+  levels fitted to the metric depth scans ``depth`` (N, H, W; the training
+  split; 0 where dropped) and ``latents`` (N, d), their GAN inversions
+  (evaluation.fit_levels makes both).
 
-  Over ``num`` samples, ``depth_levels`` offsets (added to those it has) are
-  set by bisection so that each cell's expected keep rate (measurability
-  times x_tilde beyond ALPHA) equals the scans' (:func:`keep_rate`), then
-  moved by one offset per ring so that each ring's equals the scans' too
-  (``rings``): a generated x_tilde is complete where a real scan's drops
-  cluster, so its cells hold more near surfaces than the real ones do. A
-  cell with fewer than MIN_PIXELS generated returns (x_tilde beyond ALPHA)
-  takes its ring's mean offset.
+  Each scan's cells are those of its inversion's x_tilde, as in scoring a
+  measurability against held-out scans. Each cell's offset is set by
+  bisection so that the mean expected keep of its pixels (measurability
+  times x_tilde beyond ALPHA) equals the share of them that returned a
+  point (:func:`observed_keep`); a cell with fewer than MIN_PIXELS returns
+  of x_tilde takes its ring's mean offset. The levels replace any
+  ``params`` had: fitting again gives the same. They move no x_tilde, and
+  the inversion's loss ignores the measurability, so one pass suffices.
+  benchmarks/research/drops/README.md ("Levels fitted to inversions, not to
+  samples") measures this fit against one to samples.
   """
   variant = params.variant
   if not variant.has_measurability:
     raise ValueError(f'calibrate: the {params.model} model has no measurability to level')
-  table, ring_rate = keep_rate(depth, params.sensor)
+  depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+  latents = np.asarray(latents, np.float32)
   h = params.sensor.shape[0]
-  if table.shape[0] != h:
-    raise ValueError(f'calibrate: the scans have {table.shape[0]} rings; the generator {h}')
-  apply = jax.jit(params.module().apply)
-  key, raw = jax.random.key(seed), []
-  for i in range(0, num, 64):
-    z = jax.random.normal(jax.random.fold_in(key, i), (min(64, num - i), params.latent_dim))
-    raw.append(apply(params.variables, z))
-  raw = jnp.concatenate(raw)
+  if depth.ndim != 3 or depth.shape[1:] != tuple(params.sensor.shape):
+    raise ValueError(f'calibrate: scans of shape {depth.shape}; the generator makes '
+                     f'(N, {h}, {params.sensor.shape[1]})')
+  if not len(depth):
+    raise ValueError('calibrate: no scans to fit drop levels to')
+  if latents.shape != (len(depth), params.latent_dim):
+    raise ValueError(f'calibrate: latents of shape {latents.shape} for {len(depth)} scans; '
+                     f'want ({len(depth)}, {params.latent_dim})')
+  bare = without_levels(params)
+  apply = jax.jit(bare.module().apply)
+  raw = jnp.concatenate([apply(bare.variables, latents[i:i + batch])
+                         for i in range(0, len(latents), batch)])
   x = variant.decode_inv_depth(raw)
   index = of_x_tilde(x, params.sensor)
+  target, _ = observed_keep(index, codec.valid_depth(depth, params.sensor), h)
   count = np.bincount(np.asarray(index).ravel(), minlength=h * BINS)
   returns = np.bincount(np.asarray(index).ravel(), np.asarray(x > codec.ALPHA).ravel(),
                         minlength=h * BINS)
 
-  def keep_of(offset):  # the expected keep of each pixel with the cells moved
+  def per_cell(offset):  # the mean expected keep of each cell with the offsets
     moved = raw.at[..., 1].add(offset[index])
-    return variant.measurability(variant.logit(moved)) * (x > codec.ALPHA)
-  per_cell = jax.jit(lambda o: jax.ops.segment_sum(keep_of(o).ravel(), index.ravel(),
-                                                   h * BINS) / jnp.maximum(count, 1))
-  offset = _bisect(per_cell, table.ravel(), iterations).reshape(h, BINS)
+    keep = variant.measurability(variant.logit(moved)) * (x > codec.ALPHA)
+    return jax.ops.segment_sum(keep.ravel(), index.ravel(), h * BINS) / jnp.maximum(count, 1)
+  offset = _bisect(jax.jit(per_cell), target.ravel(), iterations).reshape(h, BINS)
   fitted = (returns >= MIN_PIXELS).reshape(h, BINS)
   weight = np.where(fitted, returns.reshape(h, BINS), 0)
   mean = (offset * weight).sum(1) / np.maximum(weight.sum(1), 1)
-  offset = jnp.asarray(np.where(fitted, offset, mean[:, None]).ravel(), jnp.float32)
-  ring = np.zeros(h)
-  if rings:
-    per_ring = jax.jit(lambda r: jnp.mean(keep_of(offset + jnp.repeat(r, BINS)), axis=(0, 2)))
-    ring = _bisect(per_ring, ring_rate, iterations)
-  return with_levels(params, np.asarray(offset).reshape(h, BINS) + ring[:, None])
+  return with_levels(bare, np.where(fitted, offset, mean[:, None]))
+
+
+def without_levels(params):
+  """``params`` without drop levels (the generator as trained)."""
+  if not params.settings.depth_levels:
+    return params
+  p = {k: v for k, v in params.variables['params'].items() if k != 'depth_levels'}
+  settings = dataclasses.replace(params.settings, depth_levels=False)
+  return params.replace(variables={**params.variables, 'params': p}, settings=settings)
 
 
 def with_levels(params, offset, source: str = 'depth levels'):
@@ -200,4 +202,4 @@ def load(workdir: str):
       return np.asarray(f['levels'], np.float32), int(f['step'])
   except (OSError, ValueError, KeyError) as e:
     raise ValueError(f'{path}: not a file of drop levels ({e}); delete it and fit them '
-                     'again (dusty_jax.levels.calibrate)') from None
+                     'again (dusty_jax.evaluation.fit_levels)') from None

@@ -566,12 +566,14 @@ def _train(config, workdir: str, log, watch) -> TrainState:
     if kept is not None and kept[1] == done:  # a finished run started again
       final = levels.with_levels(ema, kept[0], os.path.join(workdir, levels.FILE))
     else:
-      # Every process fits the same levels (same samples, same scans); one writes.
-      final = levels.calibrate(ema, depth[:evaluation.RING_TABLE_SCANS])
+      # Every process fits the same levels (same inversions); one writes.
+      if is_main:
+        log(f'fitting drop levels per (ring, depth) cell to inversions of '
+            f'{min(len(depth), evaluation.LEVEL_SCANS)} training scans')
+      final = evaluation.fit_levels(ema, depth, progress=is_main)
       if is_main:
         levels.save(workdir, final.variables['params']['depth_levels'], done)
-        log(f'drop levels per (ring, depth) cell fitted to the training split: '
-            f'{levels.FILE} (applied when step {done} is loaded)')
+        log(f'drop levels written: {levels.FILE} (applied when step {done} is loaded)')
   fe = config.final_eval
   if (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
       os.path.join(workdir, evaluation.AFTER_TRAINING + '.json')):

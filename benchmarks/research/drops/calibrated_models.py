@@ -76,47 +76,6 @@ def draw(shown: dict, depth, drop_prob, sensor, path: str):
   print(f'wrote {path}')
 
 
-def calibrate_on_inversions(params, train, steps: int, batch: int = 64):
-  """``params`` (DUSty-I) with drop levels per (ring, depth) cell fitted to
-  inversions of the training scans ``train`` (metric depth), not to samples:
-  each cell (judged on the inverted x_tilde, as in scoring) gets the logit
-  offset by which the inverted measurability's mean keep there equals the
-  observed keep of those scans' pixels in it (levels.keep_rate's pull
-  towards the ring's rate; a cell with fewer than levels.MIN_PIXELS
-  returns takes its ring's mean offset). No ring pass: the cells are those
-  of the inversions already. The inversion's loss ignores the
-  measurability, so the offsets do not move the x_tilde they are fitted on.
-  """
-  import jax.numpy as jnp
-  from dusty_jax import codec, evaluation, levels
-  if not params.variant.has_measurability or params.variant.out_channels != 2:
-    raise ValueError('calibrate_on_inversions: DUSty-I only (depth and a pixel logit alone)')
-  sensor, h, nb = params.sensor, params.sensor.shape[0], levels.BINS
-  logit, index, gate, keep = [], [], [], []
-  for _, d, _, _, res in evaluation.restore_batches(params, train, num_steps=steps,
-                                                     batch=batch, progress=True):
-    m = np.clip(np.asarray(res['measurability'], np.float64), 1e-12, 1 - 1e-12)
-    x = np.asarray(res['inv_depth'], np.float32)
-    logit.append(np.log(m) - np.log1p(-m))
-    index.append(np.asarray(levels.of_x_tilde(jnp.asarray(x), sensor)))
-    gate.append(x > codec.ALPHA)
-    keep.append(np.asarray(codec.valid_depth(np.asarray(d, np.float32), sensor)))
-  logit, index, gate, keep = (np.concatenate(v).ravel() for v in (logit, index, gate, keep))
-  seen = np.bincount(index, minlength=h * nb)
-  kept = np.bincount(index, keep.astype(np.float64), minlength=h * nb)
-  ring = kept.reshape(h, nb).sum(1) / np.maximum(seen.reshape(h, nb).sum(1), 1)
-  target = (kept + levels.PSEUDO_COUNT * np.repeat(ring, nb)) / (seen + levels.PSEUDO_COUNT)
-  per_cell = lambda o: np.bincount(
-      index, gate / (1 + np.exp(-(logit + np.asarray(o, np.float64)[index]))),
-      minlength=h * nb) / np.maximum(seen, 1)
-  offset = levels._bisect(per_cell, target, 40).reshape(h, nb)
-  returns = np.bincount(index, gate.astype(np.float64), minlength=h * nb).reshape(h, nb)
-  fitted = returns >= levels.MIN_PIXELS
-  weight = np.where(fitted, returns, 0)
-  mean = (offset * weight).sum(1) / np.maximum(weight.sum(1), 1)
-  return levels.with_levels(params, np.where(fitted, offset, mean[:, None]))
-
-
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
   p.add_argument('--models', required=True, help='NAME, NAME=WORKDIR or NAME=FILE.npz, comma-separated')
@@ -127,11 +86,12 @@ def main(argv=None):
   p.add_argument('--synthesis', type=int, default=200, help='scans per Table II set')
   p.add_argument('--points', type=int, default=512)
   p.add_argument('--seeds', type=int, default=2)
-  p.add_argument('--forms', default='as shipped,rings,levels',
-                 help="of each model: 'as shipped', 'rings' (one offset per ring, "
-                      "placement_curve.calibrate_rings), 'levels' (dusty_jax.levels.calibrate), "
-                      "'cells' (the same without its ring pass: rings=False), 'inverted' "
-                      "(levels fitted to inversions of --fit-scans training scans)")
+  p.add_argument('--forms', default='as shipped,rings,inverted',
+                 help="of each model: 'as shipped', 'without levels', 'rings' (one offset "
+                      "per ring, placement_curve.calibrate_rings), 'inverted' (the library's "
+                      "drop levels, evaluation.fit_levels: fitted to inversions of "
+                      "--fit-scans training scans; the fit to samples that 'levels' and "
+                      "'cells' named left the library after 6f82cd7..a7a438e)")
   p.add_argument('--fit-scans', type=int, default=256,
                  help="training scans inverted for the 'inverted' form")
   p.add_argument('--picture', type=int, default=0,
@@ -160,12 +120,10 @@ def main(argv=None):
     shown_depth = depth
   train = np.asarray(arrays.load_split(a.data_dir, 'train', sensor)[:evaluation.RING_TABLE_SCANS])
   make = {'as shipped': lambda p: p,
-          'without levels': lambda p: (levels.with_levels(p, -p.variables['params']['depth_levels'])
-                                       if p.settings.depth_levels else p),
+          'without levels': levels.without_levels,
           'rings': lambda p: placement_curve.calibrate_rings(p, ring_keep),
-          'levels': lambda p: levels.calibrate(p, train),
-          'cells': lambda p: levels.calibrate(p, train, rings=False),
-          'inverted': lambda p: calibrate_on_inversions(p, train[:a.fit_scans], a.steps)}
+          'inverted': lambda p: evaluation.fit_levels(p, train, num=a.fit_scans,
+                                                      num_steps=a.steps, progress=True)}
   results, shown = {}, {}
   for item in [m for m in a.models.split(',') if m]:
     name, params = load(item)

@@ -49,9 +49,12 @@ def cells_of(x, sensor):
 
 def real_rates(train, sensor):
   """(H * BINS,) the training scans' keep rate per cell, sparse cells pulled
-  to their ring's rate (dusty_jax.levels.keep_rate)."""
-  from dusty_jax import levels
-  return levels.keep_rate(train, sensor)[0].ravel()
+  to their ring's rate (dusty_jax.levels.observed_keep), the cells judged
+  on the observed scans."""
+  from dusty_jax import codec, levels
+  index = np.asarray(levels.cells(codec.encode(train, sensor),
+                                  codec.valid_depth(train, sensor), sensor))
+  return levels.observed_keep(index, codec.valid_depth(train, sensor), sensor.shape[0])[0].ravel()
 
 
 def pixel_logit_and_gate(params, raw):

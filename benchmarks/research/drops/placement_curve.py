@@ -91,11 +91,12 @@ FORMS = ('trained', 'calibrated', 'levels')
 def forms_of(params, train_depth, ring_keep, forms):
   """Each form of a checkpoint's generator: as trained, its level
   calibrated with one offset per ring (:func:`calibrate_rings`), and with
-  drop levels per (ring, depth) cell (dusty_jax.levels.calibrate)."""
-  from dusty_jax import levels
+  drop levels per (ring, depth) cell (dusty_jax.evaluation.fit_levels; the
+  records before 2026-11-27 used the fit to samples it replaced)."""
+  from dusty_jax import evaluation
   make = {'trained': lambda: params,
           'calibrated': lambda: calibrate_rings(params, ring_keep),
-          'levels': lambda: levels.calibrate(params, train_depth)}
+          'levels': lambda: evaluation.fit_levels(params, train_depth)}
   for form in forms:
     yield form, make[form]()
 

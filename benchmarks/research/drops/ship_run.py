@@ -35,8 +35,9 @@ def main(argv=None):
               'beyond_the_paper': drops != configs.drop_defaults().to_dict()}
   source = a.config + (f' ({a.note})' if a.note else '')
   if params.settings.depth_levels:
-    training['depth_levels'] = ('dusty_jax.levels.calibrate at the end of training: the first '
-                                '1024 training scans, 256 samples, seed 0')
+    training['depth_levels'] = ('dusty_jax.evaluation.fit_levels at the end of training: '
+                                'inversions of the first 256 training scans, 300 iterations '
+                                'from a random start, seed 0')
     source += ' + depth levels'
   options = os.path.join(a.workdir, 'encoder', 'options.json')
   if params.encoder is not None and os.path.isfile(options):
