@@ -437,9 +437,10 @@ def report(results, trade_result, trade_model, train_seconds, a, machine, kitti_
   ]
   if a.from_pretrained:
     lines += [f'Not trained in this run: {a.from_pretrained} (MODEL=shipped generator,'
-              ' trained by an earlier run of this study with the same settings); with'
-              f' `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
-              ' sections are that run\'s, the rest computed here.', '']
+              ' trained by an earlier run of this study with the same settings); ' +
+              (f'with `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
+               ' sections are that run\'s, the rest computed here.' if a.reuse else
+               'every section computed here.'), '']
   from dusty_jax import drops
   for preset in sorted({RUNS[m][1] for m in results} - {'authors'}):
     runs = ', '.join(m for m in results if RUNS[m][1] == preset)

@@ -72,13 +72,14 @@ def test_trained_dusty1_fits_and_completes_a_held_out_simulated_scan():
 def test_shipped_sim_dusty1_keeps_and_places_its_drops():
   """sim-dusty1 is DUSty-I trained as the authors' code trains (the main
   command, experiments/synthetic.py), then its drop levels fitted per (ring,
-  depth) cell (drops preset 'levels'), with its encoder. The faithful
-  training stops dropping (sim-dusty1-authors: about 1e-4); the levels alone
-  bring its samples to the data's drop rate (0.20; 0.203 of 16 samples when
-  exported), and from the encoder + 50 iterations its measurability ranks
-  six held-out scenes' observed drops (AUC 0.855 when exported), within
-  rings on surfaces nearer than 40 m too (0.526; a per-ring rate scores 0.5,
-  the retired `far` preset's ranking ran backwards there)."""
+  depth) cell (drops preset 'levels', fitted to inversions of training
+  scans), with its encoder. The faithful training stops dropping
+  (sim-dusty1-authors: about 1e-4); the levels alone bring its samples near
+  the data's drop rate (0.20; 0.213 of 16 samples when exported), and from
+  the encoder + 50 iterations its measurability ranks six held-out scenes'
+  observed drops (AUC 0.889 when exported), within rings on surfaces nearer
+  than 40 m too (0.514; a per-ring rate scores 0.5, the retired `far`
+  preset's ranking ran backwards there)."""
   from dusty_jax import configs
   from dusty_jax.data import synthetic
   from dusty_jax.metrics import ground_truth
@@ -121,10 +122,11 @@ def test_shipped_sim_dusty1_keeps_and_places_its_drops():
 
 def test_shipped_sim_dusty2_keeps_and_places_its_drops():
   """sim-dusty2 is DUSty-II trained with the same dips variant, its drop
-  levels fitted per (ring, depth) cell after training: it drops as often as
-  the simulated data (0.21 of 16 samples when exported) and, inverted from a
-  random start (it ships without an encoder), ranks a held-out scene's
-  observed drops (AUC 0.874 when exported, 100 iterations)."""
+  levels fitted per (ring, depth) cell after training: it drops about as
+  often as the simulated data (0.231 of 16 samples when exported; data
+  0.20) and, inverted from a random start (it ships without an encoder),
+  ranks a held-out scene's observed drops (AUC 0.906 when exported, 100
+  iterations)."""
   from dusty_jax import pretrained
   from dusty_jax.data import synthetic
   from dusty_jax.metrics import ground_truth
