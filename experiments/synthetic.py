@@ -4,8 +4,9 @@ The first run simulates the scenes (2,000 + 200 + 200 scans) and caches them:
 36 CPU-seconds, 20.0 s on a 2-core AMD EPYC VM (load 2-4);
 benchmarks/synthesize.py.
 Then it trains the study's CPU-scale DUSty-I as the authors do for 2,500
-steps, fits its drop levels per (ring, depth) cell (dusty_jax.levels: the
-recipe of the shipped `sim-dusty1`, drops preset 'levels') and ends with a
+steps, fits its drop levels per (ring, depth) cell to inversions of 256
+training scans (dusty_jax.levels: the recipe of the shipped `sim-dusty1`,
+drops preset 'levels') and ends with a
 short evaluation on the test split (final_evaluation.json / .png: Table II
 on 200 scans, drop placement of 32 inverted scans against the simulator's
 truth). The paper-size model and schedule, for GPUs: experiments/synthetic_gpu.py.
