@@ -144,6 +144,7 @@ def main(argv=None):
             f'{100 * s["jsd"]:.1f} MMD x1e3 {1e3 * s["mmd"]:.2f} 1-NNA '
             f'{100 * s["1nna"]:.1f} COV {100 * s["cov"]:.1f}', flush=True)
   if shown:
+    os.makedirs(a.out, exist_ok=True)
     truth = np.asarray(arrays.load_split(a.data_dir, a.split, sensor, 'drop_prob')[:a.picture])
     draw(shown, shown_depth[:a.picture], truth, sensor,
          os.path.join(a.out, f'{a.name}.png'))
