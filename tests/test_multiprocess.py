@@ -18,7 +18,7 @@ import time
 import numpy as np
 import pytest
 
-from dusty_jax import checkpoint, parallel
+from dusty_jax import checkpoint, levels, parallel
 from conftest import FAST_COMPILE
 
 HERE = os.path.dirname(__file__)
@@ -146,17 +146,23 @@ def test_a_lost_process_then_a_rerun_resumes_as_if_uninterrupted(tmp_path):
 
   # Side by side: the same 2 processes again, to 2 steps beyond the
   # checkpoint; from a copy, one process with the machine's device count;
-  # and an uninterrupted run of 2 processes.
+  # and an uninterrupted run of 2 processes, which ends by fitting drop
+  # levels (each process inverts the training scans; one writes).
   end = last + 2
   alone, whole = str(tmp_path / 'alone'), str(tmp_path / 'whole')
   shutil.copytree(run, alone)
-  runs = {d: _train(tmp_path, d, f'--config.num_steps={end}', processes=1 if d == alone else 2)
+  levelled = {whole: ['--config.drops.depth_levels=True']}
+  runs = {d: _train(tmp_path, d, f'--config.num_steps={end}', *levelled.get(d, []),
+                    processes=1 if d == alone else 2)
           for d in (run, alone, whole)}
   for d, procs in runs.items():
     _finish(procs, d)
   assert all(f'resumed from step {last}' in _log(run, k) for k in (0, 1))
   assert f'resumed from step {last}' in _log(alone)
 
+  fitted = levels.load(whole)
+  assert fitted is not None and fitted[1] == end and np.isfinite(fitted[0]).all()
+  assert 'drop levels written' in _log(whole, 0) and not NOISE.search(_log(whole, 1))
   want = _state(whole, end)
   _assert_close(_state(run, end), want, rtol=1e-6, atol=1e-7)
   # Another device count: the same training, to float rounding.
