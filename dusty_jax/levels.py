@@ -146,10 +146,10 @@ def calibrate(params, depth, latents, iterations: int = 40, batch: int = 64):
                          for i in range(0, len(latents), batch)])
   x = variant.decode_inv_depth(raw)
   index = of_x_tilde(x, params.sensor)
-  target, _ = observed_keep(index, codec.valid_depth(depth, params.sensor), h)
-  count = np.bincount(np.asarray(index).ravel(), minlength=h * BINS)
-  returns = np.bincount(np.asarray(index).ravel(), np.asarray(x > codec.ALPHA).ravel(),
-                        minlength=h * BINS)
+  flat = np.asarray(index).ravel()
+  target, _ = observed_keep(flat, codec.valid_depth(depth, params.sensor), h)
+  count = np.bincount(flat, minlength=h * BINS)
+  returns = np.bincount(flat, np.asarray(x > codec.ALPHA).ravel(), minlength=h * BINS)
 
   def per_cell(offset):  # the mean expected keep of each cell with the offsets
     moved = raw.at[..., 1].add(offset[index])
