@@ -14,6 +14,7 @@ from __future__ import annotations
 import difflib
 import errno
 import importlib.util
+import inspect
 import logging
 import os
 import pickle
@@ -238,6 +239,9 @@ def _load_config(path, errors: bool = False):
     spec = importlib.util.spec_from_file_location('_dusty_jax_config', path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    if arg and not inspect.signature(module.get_config).parameters:
+      raise TypeError(f"this config takes no argument after ':' (got {arg!r}); "
+                      'experiments/study.py does (its presets)')
     return module.get_config(arg) if arg else module.get_config()
   except Exception as e:  # the override error, already in hand, says enough then.
     return e if errors else None

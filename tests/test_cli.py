@@ -118,6 +118,8 @@ BAD = [
     (['extra'], 1, 2, r'unexpected arguments'),
     ([f'--config={os.path.join(os.path.dirname(SMOKE), "study.py")}:dusty1,lvls'], 1, 2,
      r"study\.py:dusty1,lvls: unknown study preset 'lvls'; known: authors, levels, dips$"),
+    ([f'--config={SMOKE}:foo'], 1, 2,
+     r"smoke\.py:foo: this config takes no argument after ':' \(got 'foo'\); experiments/study"),
     (['--config.impl=XLA'], 1, 2, r"impl='XLA': must be '' .*, 'matmul' or 'xla'$"),
     (['--config.augment=cutout,flip'], 1, 2, r"augment='cutout,flip': 'flip' is no augm"),
     (['--config.drops=dips'], 1, 2,

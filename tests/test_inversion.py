@@ -116,7 +116,7 @@ def test_corruptions(tiny):
 
 
 def test_cli_on_files_and_split(smoke_run, tmp_path):
-  from dusty_jax.data import kitti, simulated_lidar
+  from dusty_jax.data import kitti, scan_files, simulated_lidar
   config, workdir, _ = smoke_run
   params, _ = dusty_jax.load_checkpoint(workdir)
   inp = tmp_path / 'in'
@@ -133,7 +133,8 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
                      timeout=600)
   assert r.returncode == 0, r.stderr[-3000:]
   for stem in ('a', 'b_00000', 'b_00001'):
-    for suffix in ('_inv_depth.npy', '_measurability.npy', '_depth.npy', '.ply', '.png'):
+    # (read_scans skips what INVERT_OUTPUTS names, should out be an input.)
+    for suffix in (*scan_files.INVERT_OUTPUTS, '_depth.npy', '.ply', '.png'):
       assert (out / f'{stem}{suffix}').is_file(), f'{stem}{suffix}'
   m = json.load(open(out / 'metrics.json'))
   assert len(m['per_scan']) == 3 and 'AbsRel' in r.stdout and 'CD x1e4' in r.stdout
@@ -239,6 +240,22 @@ def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
   with pytest.raises(ValueError, match='none of 1 input files'):
     scan_files.read_scans(str(tmp_path / 'z.npy'), tiny, log=logs.append)
   assert logs[0] == f'skipped: {tmp_path / "z.npy"}: a .npz archive, not a .npy array of metric depth'
+  # invert's outputs as inputs (its --out given as --input): its re-rendered
+  # scan is read; x_tilde and the measurability, whose values in (0, 1]
+  # would pass for depth beyond the sensor's 0.9 m minimum, are not.
+  out = tmp_path / 'out'
+  out.mkdir()
+  np.save(out / 'a_depth.npy', good)
+  np.save(out / 'a_inv_depth.npy', np.full(tiny.shape, 0.95, np.float32))
+  np.save(out / 'a_measurability.npy', np.full(tiny.shape, 0.95, np.float32))
+  assert not scan_files.no_return_reason(np.load(out / 'a_measurability.npy'), tiny)
+  logs = []
+  assert [n for n, _ in scan_files.read_scans(str(out), tiny, log=logs.append)] == ['a_depth']
+  assert logs[:2] == [
+      f"skipped: {out / 'a_inv_depth.npy'}: invert's normalised inverse depth (x_tilde), "
+      'not metric depth (a_depth.npy is its scan in metres)',
+      f"skipped: {out / 'a_measurability.npy'}: invert's measurability, not metric depth "
+      '(a_depth.npy is its scan in metres)'], logs
 
 
 # The schedule and the projection before they were optax's, kept as the

@@ -10,6 +10,11 @@ from dusty_jax.data import kitti
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
 
+# What tools/invert.py writes per scan beside the re-rendered metric depth
+# (NAME_depth.npy, a scan like any other): not metric depth, so not inputs.
+INVERT_OUTPUTS = {'_inv_depth.npy': 'normalised inverse depth (x_tilde)',
+                  '_measurability.npy': 'measurability'}
+
 
 def no_return_reason(depth: np.ndarray, sensor: SensorSpec) -> str | None:
   """Why a metric depth scan has no pixel inside the sensor's range (so
@@ -35,6 +40,11 @@ def _load_npy(path: str) -> np.ndarray:
   if not path.endswith('.npy'):
     raise ValueError(f'{path}: not a scan file; give KITTI .bin files or .npy '
                      'files of metric depth')
+  for suffix, what in INVERT_OUTPUTS.items():
+    if path.endswith(suffix):
+      stem = os.path.basename(path[:-len(suffix)])
+      raise ValueError(f"{path}: invert's {what}, not metric depth ({stem}_depth.npy "
+                       'is its scan in metres)')
   try:
     arr = np.load(path, allow_pickle=False)
   except ValueError:  # pickled objects, or not an array file at all
@@ -49,7 +59,8 @@ def read_scans(path: str, sensor: SensorSpec, log=print):
   """[(name, metric depth (H, W))] from a file or a directory of files.
 
   ``.bin`` files are unfolded with the sensor; ``.npy`` files hold metric
-  depth (H, W) or (N, H, W). A file that cannot be read, or a scan with no
+  depth (H, W) or (N, H, W); of those, invert's outputs that are not depth
+  (INVERT_OUTPUTS) are skipped. A file that cannot be read, or a scan with no
   depth inside the sensor's range (nothing to fit: e.g. encoded scans given
   as metres), is reported with its file and skipped (and counted), as
   prepare does; only no usable scan at all fails.

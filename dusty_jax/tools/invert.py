@@ -11,7 +11,8 @@ holding metric depth (H, W) or (N, H, W) (the prepared format). Writes per
 scan ``NAME_inv_depth.npy`` (complete x_tilde), ``NAME_measurability.npy``,
 ``NAME_depth.npy`` (the re-rendered scan in metres), ``NAME.ply`` (its
 points) and ``NAME.png`` (target, corrupted input, x_tilde, measurability,
-re-rendered scan), plus ``metrics.json``.
+re-rendered scan), plus ``metrics.json``. Given such a folder as --input,
+only its ``NAME_depth.npy`` files are read.
 
     python -m dusty_jax.tools.invert --workdir RUN --split test --num 100 [--corrupt ...]
         [--protocol reference|paper]
