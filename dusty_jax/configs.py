@@ -314,6 +314,12 @@ def load(workdir: str) -> ml_collections.ConfigDict:
                             'train one with `python -m dusty_jax.train --workdir DIR`')
   with open(path) as f:
     try:
-      return upgrade(json.load(f))
+      saved = json.load(f)
     except json.JSONDecodeError as e:
       raise ValueError(f'{path}: not valid JSON ({e})') from None
+  # Every config this library has saved names its model and sensor.
+  missing = [k for k in ('model', 'sensor') if not isinstance(saved, dict) or k not in saved]
+  if missing:
+    raise ValueError(f'{path}: not a dusty_jax run config (no {missing[0]!r} field), so '
+                     f'{workdir} is no training run of this library')
+  return upgrade(saved)

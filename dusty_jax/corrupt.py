@@ -50,7 +50,8 @@ def parse(spec: str):
   if name == 'beams' and (v < 1 or v != int(v)):
     raise ValueError(f'corruption {spec!r}: beams takes a whole number k >= 1')
   if name == 'noise' and v < 0:
-    raise ValueError(f'corruption {spec!r}: noise sigma must be >= 0 metres')
+    raise ValueError(f'corruption {spec!r}: noise sigma (a fraction of the sensor\'s '
+                     'depth range, not metres) must be >= 0')
   if name not in ('drop', 'beams', 'noise'):
     raise ValueError(f'unknown corruption {name!r}; known: drop, beams, noise')
   return name, v

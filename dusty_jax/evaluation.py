@@ -85,6 +85,9 @@ def synthesis(params: GeneratorParams, test, train=None, *, num: int = 5000,
   sensor = params.sensor
   ref = encoded_subset(test, num, protocol_name, sensor)
   n = len(ref)
+  if n < 2:  # 1-NNA leaves one cloud out: each set needs another
+    raise ValueError(f'Table II needs at least 2 scans per set; num={num} of a test split '
+                     f'of {len(test)} gives {n}')
   tol = params.tolerance if tolerance is None else float(tolerance)
   cache = {}
   compare = lambda fake, seed, beta=0.0: protocol.compare(

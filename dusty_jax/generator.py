@@ -25,6 +25,7 @@ import dataclasses
 import json
 import os
 import sys
+import zipfile
 from typing import Any
 
 import jax
@@ -154,6 +155,10 @@ def read_angles(workdir: str, sensor: SensorSpec, angles=None) -> np.ndarray:
 # ----------------------------------------------------------------------------
 
 
+MODEL_FORMS = ("a model is a run directory, a shipped model's name, an exported .npz "
+               "or an authors' .pth")
+
+
 def load(path: str, step: int | None = None, ema: bool = True,
          config: str | None = None, angles: str | None = None, log=None):
   """(GeneratorParams, config): the EMA generator by default.
@@ -192,6 +197,9 @@ def load(path: str, step: int | None = None, ema: bool = True,
         params = params.replace(angles=jnp.asarray(
             read_angles(path, params.sensor, angles), jnp.float32))
       return params, None
+    if not zipfile.is_zipfile(path):  # what torch.save writes
+      raise ValueError(f"{path}: not a model file (an authors' .pth is a torch.save zip "
+                       f'file); {MODEL_FORMS}')
     from dusty_jax import authors  # the .pth reader, only when one is given
     fields, run_config = authors.load(path, config=config, ema=ema, angles=angles)
     return GeneratorParams(**fields), run_config
@@ -265,6 +273,9 @@ def read_meta(path: str) -> dict:
 def load_file(path: str) -> GeneratorParams:
   """A generator written by :func:`export`."""
   with np.load(path, allow_pickle=False) as f:
+    if 'meta' not in f.files:
+      raise ValueError(f'{path}: not a generator exported by dusty_jax (no meta in the '
+                       f'archive); {MODEL_FORMS}')
     meta = json.loads(str(f['meta']))
     flat = {k[len('variables/'):]: jnp.asarray(f[k]) for k in f.files
             if k.startswith('variables/')}

@@ -310,18 +310,14 @@ def render_drops(params: GeneratorParams, scan, *, key=None,
   Returns dict: ``measurability`` (B, H, W), ``masks`` and ``scans``
   (num_samples, B, H, W), and ``inversion`` (the full :func:`invert` result).
   """
+  if not isinstance(num_samples, (int, np.integer)) or num_samples < 0:
+    raise ValueError(f'num_samples={num_samples!r}: must be a whole number >= 0')
   scan = jnp.asarray(scan, jnp.float32)
-  single = scan.ndim == 2
-  batch = scan[None] if single else scan
   key = sampling.as_key(key)
   k_inv, k_mask = jax.random.split(key)
-  rec = invert(params, batch, key=k_inv, num_steps=num_steps, impl=impl)
-  p = rec['measurability']
+  rec = invert(params, scan, key=k_inv, num_steps=num_steps, impl=impl)
+  p = rec['measurability']  # (H, W) for a 2-D scan, as each of rec's arrays
   u = jax.random.uniform(k_mask, (num_samples,) + p.shape)
   masks = (u < p).astype(jnp.float32)
-  scans = jnp.where(masks > 0, jnp.where(jnp.isfinite(batch), batch, ALPHA), ALPHA)
-  out = {'measurability': p, 'masks': masks, 'scans': scans, 'inversion': rec}
-  if single:
-    out = {'measurability': p[0], 'masks': masks[:, 0], 'scans': scans[:, 0],
-           'inversion': jax.tree.map(lambda v: v[0], rec)}
-  return out
+  scans = jnp.where(masks > 0, jnp.where(jnp.isfinite(scan), scan, ALPHA), ALPHA)
+  return {'measurability': p, 'masks': masks, 'scans': scans, 'inversion': rec}

@@ -35,7 +35,7 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
                      f"{params.latent_dim}), {params.latent_dim} being this generator's "
                      'latent_dim')
   xla_cache.enable()
-  return _generate(params, z, key, train, impl)
+  return _generate(params, z, as_key(key), train, impl)
 
 
 @xla_cache.jit(static_argnames=('train', 'impl'),

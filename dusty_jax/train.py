@@ -74,5 +74,13 @@ def _train():
                              peer_timeout=FLAGS.peer_timeout)
 
 
+def _parse(argv):
+  """cli.parse_flags; --help prints the flags and exits 0, as the tools'
+  (absl's exits 1)."""
+  if any(a in ('-h', '--help', '-help') for a in argv[1:]):
+    app.usage(shorthelp=True, writeto_stdout=True, exitcode=0)
+  return cli.parse_flags(argv)
+
+
 if __name__ == '__main__':
-  app.run(main, flags_parser=cli.parse_flags)
+  app.run(main, flags_parser=_parse)

@@ -165,7 +165,7 @@ def test_clear_errors(tmp_path):
   with pytest.raises(ValueError, match='not a torch.save checkpoint'):
     authors.read_torch_checkpoint(os.path.join(DATA, 'authors_dusty1_config.yaml'))
   # A file that is no checkpoint says so, before any config is looked for.
-  with pytest.raises(ValueError, match='not a torch.save checkpoint'):
+  with pytest.raises(ValueError, match="not a model file \\(an authors' .pth is a torch.save"):
     dusty_jax.load_checkpoint(os.path.join(DATA, 'authors_angles_resized.npy'))
   lone = tmp_path / 'lone.pth'
   shutil.copy(os.path.join(DATA, 'authors_dusty1.pth'), lone)
@@ -291,10 +291,12 @@ def test_convert_makes_a_run_directory(tmp_path):
   np.testing.assert_array_equal(np.asarray(run.angles), np.asarray(direct.angles))
   with pytest.raises(SystemExit, match='already holds a run'):
     convert.main(['--pth', pth, '--workdir', work])
-  with pytest.raises(SystemExit, match='not a torch.save checkpoint'):
+  with pytest.raises(SystemExit, match="not a model file \\(an authors' .pth is a torch.save"):
     convert.main(['--pth', os.path.join(DATA, 'authors_angles_resized.npy'),
                   '--config', os.path.join(DATA, 'authors_dusty2_config.yaml'),
                   '--workdir', str(tmp_path / 'other')])
+  with pytest.raises(SystemExit, match=r"data: a directory; give the authors' checkpoint file"):
+    convert.main(['--pth', DATA, '--workdir', str(tmp_path / 'other')])
 
 
 def test_converted_run_with_a_dataset_serves_invert_and_evaluate(tmp_path):

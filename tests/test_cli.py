@@ -144,6 +144,35 @@ def test_bad_config_is_one_line(tmp_path, args, devices, status, says):
   assert not (tmp_path / 'w').exists()
 
 
+# A tool's flag value that cannot be right is a bad flag as absl's own are:
+# (tool, arguments, what the line says), exit 2 before anything loads.
+BAD_TOOL_FLAGS = [
+    ('invert', ['--corrupt', 'drops:0.9'], r"--corrupt=drops:0\.9: unknown corruption 'drops'"),
+    ('invert', ['--corrupt', 'noise:-1'], r'fraction of the sensor.s depth range, not metres'),
+    ('invert', ['--split', 'test'], r'give exactly one of --input and --split'),
+    ('prepare', ['--splits', 'train,tset'], r'--splits=.*each split is one of train, val, test'),
+    ('synthesize', ['--sensor', 'hdl64'], r'--sensor=hdl64: value should be one of <kitti\|mpo>'),
+    ('evaluate', ['--num', '1'], r'--num=1: 1 is not integer >= 2'),
+]
+TOOL_ARGS = {'invert': ['--workdir', 'sim-dusty1', '--input', 'x.npy'],
+             'prepare': ['--dataset', 'kitti', '--root', '.', '--out', 'o'],
+             'synthesize': ['--num', '2', '--out', 'o'],
+             'evaluate': ['--workdir', 'sim-dusty1']}
+
+
+@pytest.mark.parametrize('tool, args, says', BAD_TOOL_FLAGS,
+                         ids=[f'{t}_{a[0][2:]}' for t, a, _ in BAD_TOOL_FLAGS])
+def test_a_bad_tool_flag_value_is_exit_2(tmp_path, capsys, tool, args, says):
+  import importlib
+  main = importlib.import_module(f'dusty_jax.tools.{tool}').main
+  with pytest.raises(SystemExit) as e:
+    main(TOOL_ARGS[tool] + args)
+  assert e.value.code == 2
+  err = capsys.readouterr().err.strip()
+  assert err.startswith('error: ') and '\n' not in err and re.search(says, err), err
+  assert not (tmp_path / 'o').exists() and not os.path.exists('o')
+
+
 @contextlib.contextmanager
 def _training(tmp_path, workdir, *extra, prefix=()):
   """A training that runs until stopped; killed on the way out, so that a

@@ -189,9 +189,12 @@ def test_bad_inputs_get_clear_errors(smoke_run, trained, tmp_path):
                encoder.EncoderSettings(hidden=settings.hidden + 1), meta)
   with pytest.raises(ValueError, match='encoder does not fit'):
     dusty_jax.load_checkpoint(run)
-  with pytest.raises(FileNotFoundError, match='not a training run directory'):
-    from dusty_jax.tools import train_encoder
+  from dusty_jax.tools import train_encoder
+  with pytest.raises(FileNotFoundError, match='nothing: no such run directory$'):
     train_encoder.train(str(tmp_path / 'nothing'), encoder.TrainOptions())
+  for model in ('sim-dusty2', os.path.join(run, encoder.FILE)):  # no training state
+    with pytest.raises(FileNotFoundError, match='not a training run directory .*pretrained'):
+      train_encoder.train(model, encoder.TrainOptions())
 
 
 def test_shipped_encoder_beats_a_random_start():

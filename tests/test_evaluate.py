@@ -253,6 +253,11 @@ def test_synthesis_is_the_protocol_subset_over_seeds(tiny):
   assert list(evaluation.synthesis(params, test, None, num=4, points=16, seeds=1)
               ['rows']) == [label]
   json.dumps(rec)
+  # One scan per set leaves 1-NNA nothing to compare with: said before sampling.
+  for t, num in ((test, 1), (test[:1], 4)):
+    with pytest.raises(ValueError, match=rf'at least 2 scans per set; num={num} of a test '
+                                         rf'split of {len(t)} gives 1$'):
+      evaluation.synthesis(params, t, None, num=num, points=16, seeds=1)
 
 
 def test_after_training_reports_and_draws(smoke_run, tmp_path):

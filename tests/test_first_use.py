@@ -346,6 +346,7 @@ def test_train_help_lists_the_configs_and_their_fields():
   env = dict(os.environ, XLA_FLAGS=FAST_COMPILE)
   r = subprocess.run([sys.executable, '-m', 'dusty_jax.train', '--help'], cwd=REPO,
                      env=env, capture_output=True, text=True, timeout=300)
+  assert r.returncode == 0, r.stderr  # as the tools' --help
   text = ' '.join(r.stdout.split())
   names = [f[:-3] for f in os.listdir(os.path.join(REPO, 'experiments'))
            if f.endswith('.py') and not f.startswith('_')]

@@ -226,3 +226,14 @@ def test_generator_files_alone_and_what_is_refused(smoke_run, tmp_path):
   # A generator file names no dataset: evaluate asks for one (--data_dir).
   with pytest.raises(SystemExit, match='no config.json naming a dataset.*give --data_dir'):
     evaluate.main(['--workdir', npz])
+  # So does invert --split; with --data_dir it evaluates that dataset's split.
+  from dusty_jax.data import pipeline
+  from dusty_jax.tools import invert
+  with pytest.raises(SystemExit, match='no config.json naming a dataset for --split; give '
+                     '--data_dir'):
+    invert.main(['--workdir', npz, '--split', 'val'])
+  data = pipeline.dataset_dir(smoke_run[0], full.sensor, log=lambda m: None)
+  out = tmp_path / 'inverted'
+  invert.main(['--workdir', npz, '--split', 'val', '--num', '2', '--steps', '1',
+               '--data_dir', data, '--out', str(out)])
+  assert json.load(open(out / 'metrics.json'))['num'] == 2

@@ -173,6 +173,8 @@ def test_render_drops_on_clean_scan(gen):
   assert abs(m.mean() - float(np.asarray(out['measurability']).mean())) < 0.02
   single = inversion.render_drops(gen, complete[0], num_steps=5)
   assert single['scans'].shape == (1,) + gen.sensor.shape
+  assert single['measurability'].shape == single['inversion']['inv_depth'].shape == (
+      gen.sensor.shape)
 
 
 def test_bad_inputs_get_clear_errors(gen, tiny):
@@ -193,6 +195,13 @@ def test_bad_inputs_get_clear_errors(gen, tiny):
   with pytest.raises(ValueError, match=rf'z of shape \(2, 5\): expected latents of shape '
                      rf'\(B, {gen.latent_dim}\)'):
     sampling.generate(gen, np.zeros((2, 5)), jax.random.key(1))
+  with pytest.raises(TypeError, match=r'got the int 0; pass jax\.random\.key\(0\)'):
+    sampling.generate(gen, np.zeros((2, gen.latent_dim)), 0)
+  with pytest.raises(ValueError, match='num_samples=-1: must be a whole number >= 0'):
+    inversion.render_drops(gen, t, num_samples=-1, num_steps=2)
+  # A 2-D scan's shape is named as given, not with the batch axis invert adds.
+  with pytest.raises(ValueError, match=r'scan of shape \(8, 16\) does not match'):
+    inversion.render_drops(gen, t[0, :8, :16], num_steps=2)
   other = gen.replace(angles=jnp.zeros((2, 8, 8)))
   with pytest.raises(ValueError, match='angles of shape'):
     sampling.sample(other, jax.random.key(0), 2)
@@ -248,7 +257,7 @@ def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
   np.save(out / 'a_depth.npy', good)
   np.save(out / 'a_inv_depth.npy', np.full(tiny.shape, 0.95, np.float32))
   np.save(out / 'a_measurability.npy', np.full(tiny.shape, 0.95, np.float32))
-  assert not scan_files.no_return_reason(np.load(out / 'a_measurability.npy'), tiny)
+  assert not scan_files.unusable_reason(np.load(out / 'a_measurability.npy'), tiny)
   logs = []
   assert [n for n, _ in scan_files.read_scans(str(out), tiny, log=logs.append)] == ['a_depth']
   assert logs[:2] == [
@@ -256,6 +265,19 @@ def test_cli_inputs_skip_a_bad_file(tiny, tmp_path):
       'not metric depth (a_depth.npy is its scan in metres)',
       f"skipped: {out / 'a_measurability.npy'}: invert's measurability, not metric depth "
       '(a_depth.npy is its scan in metres)'], logs
+  # Normalised values in (0, 1] given as metres: most below the 0.9 m
+  # minimum, a few above it. A metric scan with a tenth of its returns
+  # beyond the maximum range is read.
+  rng = np.random.default_rng(0)
+  norm = rng.uniform(0.009, 1.0, tiny.shape).astype(np.float32)
+  far = np.where(rng.uniform(size=tiny.shape) < 0.1, 150.0, 10.0).astype(np.float32)
+  share = np.mean(norm > tiny.min_depth)
+  assert 0 < share < 0.5
+  assert scan_files.unusable_reason(far, tiny) is None
+  assert scan_files.unusable_reason(norm, tiny) == (
+      f"{share:.0%} of the returns lie inside the sensor's range ({tiny.min_depth}, "
+      f'{tiny.max_depth}) m (values in [{norm.min():.3g}, {norm.max():.3g}]): normalised '
+      'or already encoded scans given as metres? The input takes metric depth')
 
 
 # The schedule and the projection before they were optax's, kept as the

@@ -441,6 +441,22 @@ def test_a_run_file_given_for_a_checkpoint_names_its_directory(smoke_run):
       dusty_jax.load_checkpoint(os.path.join(workdir, name))
 
 
+def test_what_is_no_model_says_so(tmp_path):
+  """A folder with another program's config.json, an .npz that export did
+  not write and a scan file: each named, with what a model is."""
+  (tmp_path / 'run').mkdir()
+  (tmp_path / 'run' / 'config.json').write_text('{"model_type": "bert"}')
+  np.savez(tmp_path / 'levels.npz', offsets=np.zeros(3))
+  np.save(tmp_path / 'scan.npy', np.ones((4, 8), np.float32))
+  forms = "a model is a run directory, a shipped model's name, an exported .npz"
+  for path, says in [('run', r"config\.json: not a dusty_jax run config \(no 'model' field\), "
+                              r'so \S+/run is no training run of this library'),
+                     ('levels.npz', rf'levels\.npz: not a generator exported by dusty_jax .*; {forms}'),
+                     ('scan.npy', rf'scan\.npy: not a model file \(.*\); {forms}')]:
+    with pytest.raises(ValueError, match=says):
+      dusty_jax.load_checkpoint(str(tmp_path / path))
+
+
 def test_a_training_ends_with_its_short_evaluation(smoke_run):
   """config.final_eval: the run directory gets final_evaluation.json and
   .png, and the lines printed name the figures of that record."""

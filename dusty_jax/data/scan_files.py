@@ -16,23 +16,24 @@ INVERT_OUTPUTS = {'_inv_depth.npy': 'normalised inverse depth (x_tilde)',
                   '_measurability.npy': 'measurability'}
 
 
-def no_return_reason(depth: np.ndarray, sensor: SensorSpec) -> str | None:
-  """Why a metric depth scan has no pixel inside the sensor's range (so
-  there is nothing to fit), or None."""
+def unusable_reason(depth: np.ndarray, sensor: SensorSpec) -> str | None:
+  """Why a metric depth scan cannot be fitted, or None: no pixel inside the
+  sensor's range, or fewer than half of its returns (nonzero finite
+  depths), as normalised or encoded values given as metres have."""
   finite = depth[np.isfinite(depth)]
-  inside = (finite > sensor.min_depth) & (finite < sensor.max_depth)
-  if inside.any():
-    return None
   returns = finite[finite != 0]
   if not returns.size:
     return 'no return: every depth is 0 or not finite'
+  inside = (returns > sensor.min_depth) & (returns < sensor.max_depth)
+  if inside.mean() >= 0.5:
+    return None
   lo, hi = float(returns.min()), float(returns.max())
-  if hi <= sensor.min_depth:
-    return (f'every depth is below the sensor\'s minimum range of {sensor.min_depth} m '
-            f'(values in [{lo:.3g}, {hi:.3g}]): normalised or already encoded '
-            'scans given as metres? The input takes metric depth')
-  return (f'no depth inside the sensor\'s range ({sensor.min_depth}, '
-          f'{sensor.max_depth}) m (values in [{lo:.3g}, {hi:.3g}])')
+  where = (f'every depth is below the sensor\'s minimum range of {sensor.min_depth} m'
+           if hi <= sensor.min_depth else
+           f'{inside.mean():.0%} of the returns lie inside the sensor\'s range '
+           f'({sensor.min_depth}, {sensor.max_depth}) m')
+  return (f'{where} (values in [{lo:.3g}, {hi:.3g}]): normalised or already encoded '
+          'scans given as metres? The input takes metric depth')
 
 
 def _load_npy(path: str) -> np.ndarray:
@@ -94,7 +95,7 @@ def read_scans(path: str, sensor: SensorSpec, log=print):
       log(f'skipped: {e}')
       continue
     for name, where, depth in scans:
-      reason = no_return_reason(np.asarray(depth), sensor)
+      reason = unusable_reason(np.asarray(depth), sensor)
       if reason:
         skipped.append((where, reason))
         log(f'skipped: {where}: {reason}')

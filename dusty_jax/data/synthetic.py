@@ -108,6 +108,8 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
   """
   splits = splits or {'train': num, 'val': max(num // 10, 1),
                       'test': max(num // 10, 1)}
+  if os.path.exists(out) and not os.path.isdir(out):
+    raise NotADirectoryError(f'{out}: a file, not a folder; give a folder for the dataset')
   os.makedirs(out, exist_ok=True)
   seq = {'train': 0, 'val': 8, 'test': 11}
   # Each split's three arrays are made here as temporary .npy files, and the

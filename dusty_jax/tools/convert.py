@@ -31,6 +31,8 @@ def convert(pth: str, workdir: str, config: str | None = None, ema: bool = True,
   # The library (and JAX) load once the flags are good: --help answers at once.
   from dusty_jax import configs, generator, trainer
   from dusty_jax.data import arrays  # (as above)
+  if os.path.isdir(pth):
+    raise IsADirectoryError(f"{pth}: a directory; give the authors' checkpoint file (.pth)")
   if not os.path.isfile(pth):
     raise FileNotFoundError(f'{pth}: no such file')
   if pth.endswith('.npz'):

@@ -44,7 +44,7 @@ def main(argv=None):
   flags.DEFINE_string('data_dir', None, 'a prepared dataset to compare with instead of '
                       "the run's (needed for a pretrained name or a single file)",
                       flag_values=f)
-  flags.DEFINE_integer('num', 5000, 'clouds per set', lower_bound=1, flag_values=f)
+  flags.DEFINE_integer('num', 5000, 'clouds per set', lower_bound=2, flag_values=f)
   flags.DEFINE_integer('points', 2048, 'points per cloud', lower_bound=1, flag_values=f)
   flags.DEFINE_integer('seeds', 5, 'generated sets', lower_bound=1, flag_values=f)
   flags.DEFINE_float('tolerance', None, "baseline's beta (default: the run's)",

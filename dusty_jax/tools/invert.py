@@ -15,10 +15,12 @@ re-rendered scan), plus ``metrics.json``. Given such a folder as --input,
 only its ``NAME_depth.npy`` files are read.
 
     python -m dusty_jax.tools.invert --workdir RUN --split test --num 100 [--corrupt ...]
-        [--protocol reference|paper]
+        [--protocol reference|paper] [--data_dir DIR]
 
-evaluates over the first --num scans of a prepared split instead and prints
-the layout of the paper's Table III (the authors evaluate every test scan).
+evaluates over the first --num scans of a prepared split instead (of the
+run's dataset, or of --data_dir: needed for a pretrained name or a single
+file) and prints the layout of the paper's Table III (the authors evaluate
+every test scan).
 ``--protocol paper`` computes the Chamfer distance as the authors' code
 (every pixel of both scans, dropped ones at the origin); the default,
 ``reference``, over valid points only. metrics.json records the protocol,
@@ -47,6 +49,9 @@ def main(argv=None):
                     "evaluate over this prepared split of the run's dataset instead",
                     flag_values=f)
   flags.DEFINE_integer('num', 100, 'scans of --split', lower_bound=1, flag_values=f)
+  flags.DEFINE_string('data_dir', None, "a prepared dataset for --split instead of the "
+                      "run's (needed for a pretrained name or a single file)",
+                      flag_values=f)
   flags.DEFINE_string('corrupt', '', 'drop:F, beams:K or noise:S', flag_values=f)
   flags.DEFINE_string('out', 'inversion', 'output folder', flag_values=f)
   flags.DEFINE_integer('steps', 1000, 'optimisation steps per scan (0: the start '
@@ -58,12 +63,27 @@ def main(argv=None):
   flags.DEFINE_integer('batch', 16, 'scans inverted together', lower_bound=1,
                        flag_values=f)
   flags.DEFINE_integer('seed', 0, 'random seed', flag_values=f)
+  flags.register_multi_flags_validator(
+      ['input', 'split'], lambda v: bool(v['input']) != bool(v['split']),
+      'give exactly one of --input and --split', flag_values=f)
+  flags.register_validator('corrupt', _corruption, flag_values=f)
   flags.DEFINE_enum('protocol', 'reference', ['reference', 'paper'],
                     "Table III's Chamfer distance: 'reference' over valid points, "
                     "'paper' as the authors (dropped pixels at the origin in both)",
                     flag_values=f)
   tools.parse(f, argv, __doc__)
   tools.run(run, f)
+
+
+def _corruption(spec: str) -> bool:
+  """--corrupt's validator: a bad spec is a bad flag (exit 2)."""
+  if spec:
+    from dusty_jax import corrupt  # JAX: only for a given --corrupt
+    try:
+      corrupt.parse(spec)
+    except ValueError as e:
+      raise flags.ValidationError(str(e)) from None
+  return True
 
 
 def write_scan(stem: str, clean, target, res):
@@ -86,16 +106,12 @@ def write_scan(stem: str, clean, target, res):
 def run(a):
   # The library (and JAX) load once the flags are good: --help and a bad flag
   # answer at once.
-  from dusty_jax import corrupt, evaluation, pretrained
+  from dusty_jax import evaluation, pretrained
   from dusty_jax.data import arrays, pipeline, scan_files  # (as above)
   from dusty_jax.metrics import reconstruction, records  # (as above)
 
-  if bool(a.input) == bool(a.split):
-    raise ValueError('give exactly one of --input and --split')
   if os.path.exists(a.out) and not os.path.isdir(a.out):
     raise ValueError(f'--out={a.out}: a file, not a folder; give a folder for the results')
-  if a.corrupt:
-    corrupt.parse(a.corrupt)
   params, config = tools.load_model(a.workdir)
   if a.init == 'encoder':
     from dusty_jax import encoder  # only for this start
@@ -107,10 +123,11 @@ def run(a):
     names, depth = [n for n, _ in items], np.stack([d for _, d in items])
     subset = f'every readable scan of {a.input!r}'
   else:
-    if config is None:
-      raise ValueError(f'{a.workdir}: --split needs a run directory (its config names '
-                       'the dataset); give --input scans for a single generator file')
-    d = pipeline.dataset_dir(config, sensor, log=lambda m: None)
+    if config is None and not a.data_dir:
+      raise ValueError(f'{a.workdir}: no config.json naming a dataset for --split; give '
+                       '--data_dir (a prepared dataset, e.g. from python -m '
+                       'dusty_jax.tools.synthesize), or --input scans')
+    d = a.data_dir or pipeline.dataset_dir(config, sensor, log=lambda m: None)
     depth = arrays.load_split(d, a.split, sensor)[:a.num]
     names = [f'{a.split}_{i:05d}' for i in range(len(depth))]
     truth = arrays.load_ground_truth(d, a.split, sensor, len(depth))

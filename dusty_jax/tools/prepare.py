@@ -21,6 +21,9 @@ def main(argv=None):
   flags.DEFINE_string('root', None, 'dataset root folder', flag_values=f, required=True)
   flags.DEFINE_string('out', None, 'output folder', flag_values=f, required=True)
   flags.DEFINE_list('splits', list(prepare.SPLITS), 'splits to prepare', flag_values=f)
+  flags.register_validator(
+      'splits', lambda v: set(v) <= set(prepare.SPLITS),
+      f'each split is one of {", ".join(prepare.SPLITS)}', flag_values=f)
   tools.parse(f, argv, __doc__)
   meta = tools.run(prepare.prepare, f.dataset, f.root, f.out, None, tuple(f.splits))
   skipped = sum(len(v) for v in meta['skipped'].values())

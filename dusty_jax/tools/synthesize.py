@@ -14,6 +14,7 @@ import os
 from absl import flags
 
 from dusty_jax import tools
+from dusty_jax.sensor import PRESETS  # (numpy only)
 
 
 def main(argv=None):
@@ -22,7 +23,7 @@ def main(argv=None):
                        required=True)
   flags.DEFINE_string('out', None, 'output folder', flag_values=f, required=True)
   flags.DEFINE_integer('seed', 0, 'scene seed', flag_values=f)
-  flags.DEFINE_string('sensor', 'kitti', 'sensor preset', flag_values=f)
+  flags.DEFINE_enum('sensor', 'kitti', sorted(PRESETS), 'sensor preset', flag_values=f)
   flags.DEFINE_integer('val', None, 'validation scans (default num // 10)',
                        lower_bound=0, flag_values=f)
   flags.DEFINE_integer('test', None, 'test scans (default num // 10)', lower_bound=0,
@@ -34,8 +35,7 @@ def main(argv=None):
   tools.parse(f, argv, __doc__)
   # The simulator (and JAX) load once the flags are good: --help answers at once.
   from dusty_jax.data import synthetic
-  from dusty_jax.sensor import get_sensor  # (as above)
-  sensor = tools.run(get_sensor, f.sensor)
+  sensor = PRESETS[f.sensor]
   small = max(f.num // 10, 1)
   splits = {'train': f.num, 'val': small if f.val is None else f.val,
             'test': small if f.test is None else f.test}

@@ -72,8 +72,10 @@ def train(workdir: str, opts, export: str = '') -> str:
   """encoder.train on the run ``workdir``'s generator; writes RUN/encoder.npz
   (and ``export``). Returns what was written."""
   # The library (and JAX) load once the flags are good.
-  from dusty_jax import encoder, generator
+  from dusty_jax import encoder, generator, pretrained
 
+  if not os.path.exists(workdir) and workdir not in pretrained.available():
+    raise FileNotFoundError(f'{workdir}: no such run directory')
   if not os.path.isdir(workdir):
     raise FileNotFoundError(f'{workdir}: not a training run directory (a pretrained '
                             'model or an exported .npz holds no training state to add '
