@@ -40,7 +40,6 @@ def default() -> ml_collections.ConfigDict:
   c.ch_max = 512
   c.impl = ''                    # '' = per backend: matmul on CPU, xla on GPU
   c.tau = 1.0                    # Gumbel-sigmoid temperature
-  c.drop_const = -1.0            # drops as the discriminator sees them (<= -1)
   c.eqlr = 'authors'             # eq-lr constants: authors | fan_in (models.py)
   c.tolerance = 0.0              # baseline drop tolerance beta (evaluate --tune)
 
@@ -154,8 +153,6 @@ def validate(c) -> None:
        'must be a whole number >= 1 (1: every step)')
   need(c.tau > 0, 'tau', 'the Gumbel temperature must be > 0')
   need(c.ema_halflife_kimg >= 0, 'ema_halflife_kimg', 'must be >= 0')
-  need(c.drop_const <= -1.0, 'drop_const',
-       'must be <= -1 (inside the depth range a drop would read as a surface)')
   need(c.impl in IMPLS, 'impl', "must be '' (per backend: matmul on CPU, xla elsewhere), "
        "'matmul' or 'xla'")
   need(c.eqlr in models.EQLR, 'eqlr', f"must be one of {', '.join(map(repr, models.EQLR))}")
@@ -173,8 +170,6 @@ def validate(c) -> None:
       raise ConfigError(f'config field drops.{field}={d.get(field)!r}: {why}')
   for f in ('rate_weight', 'dip_weight'):
     need_drop(d[f] >= 0, f, 'must be >= 0')
-  need_drop(d.rate_by in drops_lib.RATE_BY, 'rate_by',
-            f"must be one of {', '.join(map(repr, drops_lib.RATE_BY))}")
   need_drop(not d.rate_head_only or d.rate_weight > 0, 'rate_head_only',
             'acts only on a rate term: set drops.rate_weight > 0')
   model_has_mask = models.get_variant(c.model).has_measurability
@@ -189,7 +184,7 @@ def validate(c) -> None:
 # Runs written before these options existed trained with what is now the
 # non-default choice (keep_every: kept as the default does; checkpoint_minutes:
 # saved by steps only); their config.json lacks the field.
-LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric', 'drop_const': -1.0,
+LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric',
           'keep_every': 0, 'checkpoint_minutes': 0.0}
 
 
@@ -200,8 +195,12 @@ REMOVED_DROPS = {'mask_channel': 0.0, 'mask_noise': 0.0, 'mask_dropout': 0.0,
                  'keep_drops': False, 'mask_lr': 1.0, 'rate_shrink': 0.0,
                  'depth_weight': 0.0, 'range_slope': False,
                  'peak_weight': 0.0, 'far_weight': 0.0, 'rate_skip_far': False}
+# drops.rate_by left too: its 'ring_depth' cells are what the rate term is;
+# its other values (the whole batch's, each ring's rate) trained only there.
+RATE_BY = 'ring_depth'
 LAST_WITH = {**dict.fromkeys(REMOVED_DROPS, 'f597033'),
-             **dict.fromkeys(('peak_weight', 'far_weight', 'rate_skip_far'), 'ca3bdad')}
+             **dict.fromkeys(('peak_weight', 'far_weight', 'rate_skip_far'), 'ca3bdad'),
+             'rate_by': 'eb52e94', 'drop_const': 'eb52e94'}
 
 
 def removed_option(field: str, value, where: str = 'config field drops.'):
@@ -216,8 +215,13 @@ def upgrade(config) -> ml_collections.ConfigDict:
   """The one translation of older configs: a copy in which each field the
   config predates holds the value such runs used (LEGACY), the ``drops``
   group (runs from before it: all off) has every option, and the removed
-  options (REMOVED_DROPS) are gone where they were off."""
+  options (REMOVED_DROPS, rate_by) are gone where they were off."""
   c = ml_collections.ConfigDict(config.to_dict() if hasattr(config, 'to_dict') else config)
+  if 'drop_const' in c:  # drops seen as ALPHA (the codec's), the one value that won
+    if c.drop_const != -1.0:
+      raise ConfigError(f'config field drop_const={c.drop_const!r}: this option was '
+                        f"removed; commit {LAST_WITH['drop_const']} is the last that has it")
+    del c['drop_const']
   for field, value in LEGACY.items():
     if field not in c:
       c[field] = value
@@ -225,6 +229,11 @@ def upgrade(config) -> ml_collections.ConfigDict:
   for field in REMOVED_DROPS:
     if field in old:
       removed_option(field, old.pop(field))
+  rate_by = old.pop('rate_by', RATE_BY)
+  if rate_by != RATE_BY and old.get('rate_weight', 0.0) > 0:
+    raise ConfigError(f'config field drops.rate_by={rate_by!r}: this option was removed; '
+                      f"commit {LAST_WITH['rate_by']} is the last that has it (the rate "
+                      'term is per (ring, depth) cell now)')
   drops = drop_defaults()
   drops.update(old)
   c.drops = drops

@@ -44,11 +44,10 @@ class DropOptions:
       rate of that ring (:func:`set_ring_bias`). It changes the networks,
       so models.ModelSettings carries it too.
     rate_weight: lambda: G's loss + lambda * the squared gap between the
-      generated and the real batch's keep rate (:func:`rate_term`) ...
-    rate_by: ... of the whole batch ('image'), of each ring ('ring',
-      averaged over rings), or of each (ring, neighbours' depth bin) cell
-      ('ring_depth', :func:`ring_depth_rate_penalty`): drops that depend on
-      the range within a ring, as a sensor's do.
+      generated and the real batch's keep rate of each (ring, neighbours'
+      depth bin) cell (:func:`ring_depth_rate_penalty`): drops that depend
+      on the range within a ring, as a sensor's do. (The rate of the whole
+      batch and of each ring lost to it: configs.LAST_WITH['rate_by'].)
     rate_head_only: the rate term is taken on the expected keep
       (the measurability, not the sampled mask) of the head applied to the
       trunk's features under stop_gradient, so it trains the measurability
@@ -68,7 +67,6 @@ class DropOptions:
   mask_bias: float = 0.0
   ring_bias: bool = False
   rate_weight: float = 0.0
-  rate_by: str = 'image'
   rate_head_only: bool = False
   mask_detached: bool = False
   dip_weight: float = 0.0
@@ -85,16 +83,14 @@ class DropOptions:
     return self.rate_weight > 0
 
 
-RATE_BY = ('image', 'ring', 'ring_depth')
-
 # The options the shipped models trained with (configs.study's presets):
 # 'authors' is the paper's training (sim-baseline, sim-dusty1-authors);
 # 'levels' the same with drop levels fitted after it (sim-dusty1); 'dips'
 # trained sim-dusty2, its levels fitted after training too
 # (benchmarks/research/drops/lineage.py: how they were reached).
 LEVELS = dict(depth_levels=True)
-DIPS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_by='ring_depth',
-            rate_head_only=True, mask_detached=True, dip_weight=10.0, depth_levels=True)
+DIPS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_head_only=True,
+            mask_detached=True, dip_weight=10.0, depth_levels=True)
 PRESETS = {'authors': {}, 'levels': LEVELS, 'dips': DIPS}
 
 
@@ -164,28 +160,11 @@ def add_penalties(options: DropOptions, sensor: SensorSpec, loss, fake, real,
     loss = loss + options.dip_weight * dip_penalty(fake.scan, axis_name)
   keep = fake.head_keep if options.rate_head_only else fake.mask  # what the term moves
   if options.rate_weight > 0:
-    loss = loss + options.rate_weight * rate_term(options, sensor, keep, fake, real,
-                                                  axis_name)
+    loss = loss + options.rate_weight * ring_depth_rate_penalty(
+        sensor, (fake.scan, fake.mask), real, axis_name, keep)
   return loss
 
 
-def rate_term(options: DropOptions, sensor: SensorSpec, keep, fake, real, axis_name=None):
-  """``rate_weight``'s term on the generated keep values ``keep``, by
-  ``rate_by``; ``fake.scan`` and ``fake.mask`` place the 'ring_depth' cells."""
-  if options.rate_by == 'ring_depth':
-    return ring_depth_rate_penalty(sensor, (fake.scan, fake.mask), real, axis_name, keep)
-  return rate_penalty(keep, real[1], options.rate_by, axis_name)
-
-
-def rate_penalty(keep, real_keep, rate_by: str = 'image', axis_name=None):
-  """(generated keep rate - real keep rate)^2: of the whole batch, or per
-  row (averaged over rows) with ``rate_by='ring'``. Only ``keep`` is
-  differentiated."""
-  axes = (0, 2) if rate_by == 'ring' else (0, 1, 2)
-  n = _psum(np.prod([keep.shape[a] for a in axes]), axis_name)
-  rate = lambda k: _psum(k.sum(axis=axes), axis_name) / n
-  gap = rate(keep) - lax.stop_gradient(rate(real_keep))
-  return jnp.mean(jnp.square(gap))
 
 
 DIP = 0.05  # normalised inverse depth: how far behind both ring neighbours a dip lies
@@ -215,7 +194,7 @@ def dip_penalty(scan, axis_name=None):
   return _psum(amount.sum(), axis_name) / jnp.maximum(_psum(counted.sum(), axis_name), 1)
 
 
-# The ``rate_by='ring_depth'`` cells are levels.py's (ring, neighbours' depth bin).
+# The rate term's cells are levels.py's (ring, neighbours' depth bin).
 RATE_DEPTH_EDGES, RATE_DEPTH_BINS = levels.EDGES, levels.BINS
 neighbour_depth_bin, ring_depth_cells = levels.neighbour_depth_bin, levels.cells
 
@@ -239,7 +218,7 @@ def cell_rate_penalty(keep, real_keep, cells, real_cells, num_cells: int, axis_n
 
 
 def ring_depth_rate_penalty(sensor: SensorSpec, fake, real, axis_name=None, keep=None):
-  """``rate_by='ring_depth'``: the cell rate penalty over (ring, depth bin)
+  """``rate_weight``'s term: the cell rate penalty over (ring, depth bin)
   cells. ``fake`` and ``real``: (scans, keep-masks) pairs; the cells are not
   differentiated. ``keep``: the generated keep values to differentiate
   (default: the mask ``fake[1]``, which bins the cells)."""

@@ -231,30 +231,27 @@ class Variant:
     """x_tilde, the complete inverse depth in [-1, 1], of raw outputs."""
     return jnp.tanh(raw[..., 0])
 
-  def compose(self, raw, key, tau: float = 1.0, train: bool = True,
-              drop_const: float = ALPHA):
+  def compose(self, raw, key, tau: float = 1.0, train: bool = True):
     """Generator output (B, H, W, C) -> dict of what the scan is made of.
 
     Returns ``inv_depth`` (x_tilde, complete), ``logit`` (measurability
     logits, (B, H, W) for dusty1, (B, H, W, 2) pixel/image for dusty2;
     absent without a measurability), ``mask`` (the sampled binary mask) and
-    ``scan`` (x = m * x_tilde + (1 - m) * drop_const; the authors' and the
-    codec's drop constant is ALPHA = -1).
+    ``scan`` (x = m * x_tilde + (1 - m) * ALPHA; ALPHA = -1 is the authors'
+    drop_const and the codec's).
     """
     inv = self.decode_inv_depth(raw)
     if not self.has_measurability:
       return {'inv_depth': inv, 'scan': inv, 'mask': jnp.ones_like(inv)}
     logit = self.logit(raw)
     mask = self.sample_mask(key, logit, tau, train)
-    scan = mask * inv + (1.0 - mask) * drop_const
+    scan = mask * inv + (1.0 - mask) * ALPHA
     return {'inv_depth': inv, 'logit': logit, 'mask': mask, 'scan': scan}
 
-  def compose_per_example(self, raw, keys, tau: float = 1.0,
-                          train: bool = True, drop_const: float = ALPHA):
+  def compose_per_example(self, raw, keys, tau: float = 1.0, train: bool = True):
     """:meth:`compose` with one key per example, so results do not depend
     on how a batch is split across devices."""
-    out = jax.vmap(lambda r, k: self.compose(r[None], k, tau, train, drop_const))(
-        raw, keys)
+    out = jax.vmap(lambda r, k: self.compose(r[None], k, tau, train))(raw, keys)
     return jax.tree.map(lambda v: v[:, 0], out)
 
   def measurability(self, logit) -> Any:

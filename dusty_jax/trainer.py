@@ -71,7 +71,6 @@ class Setup:
   batch_size: int = static()
   policy: tuple = static()
   augment_style: str = static()
-  drop_const: float = static()
   drops: drops.DropOptions = static()
 
 
@@ -100,7 +99,6 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
       ema_halflife_img=config.ema_halflife_kimg * 1000.0,
       ema_rampup=float(config.ema_rampup),
       batch_size=config.batch_size, policy=policy, augment_style=style,
-      drop_const=float(config.drop_const),
       drops=drops.DropOptions.from_config(config.drops))
 
 
@@ -141,7 +139,7 @@ def fake_scans(setup: Setup, params, z, keys, train=True, detached_head=False):
   raw, raw_head = raw if detach else (raw, None)
   if setup.drops.mask_detached:  # depth from the trunk, the mask from the head alone
     raw = jnp.concatenate([raw[..., :1], raw_head[..., 1:]], axis=-1)
-  out = variant.compose_per_example(raw, keys, setup.settings.tau, train, setup.drop_const)
+  out = variant.compose_per_example(raw, keys, setup.settings.tau, train)
   if detached_head:
     out['head_keep'] = variant.measurability(variant.logit(raw_head))
   return out
@@ -255,8 +253,8 @@ def train_step(setup: Setup, state: TrainState, batch, key, axis_name=AXIS):
   # Randomness per example, from (key, step, global example index): the same
   # whatever the number of devices, so 1- and N-device runs agree.
   b = batch.shape[0]
-  # Drops in the discriminator's input take the drop constant (ALPHA: as is).
-  batch = jnp.where(batch <= codec.ALPHA, setup.drop_const, batch)
+  # Drops in the discriminator's input are ALPHA, as generated ones.
+  batch = jnp.where(batch <= codec.ALPHA, codec.ALPHA, batch)
   key = jax.random.fold_in(key, state.step)
   ids = lax.axis_index(axis_name) * b + jnp.arange(b)
   keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 5))(ids)

@@ -3,6 +3,7 @@ built from a valid config (Setup, DropOptions) reads its fields as they are,
 so validate refuses a config that lacks one, naming it, instead of letting a
 default stand in for it."""
 
+import json
 import os
 
 import ml_collections
@@ -52,8 +53,8 @@ def test_an_unknown_study_name_lists_the_known_ones(args, what):
     configs.study(*args)
 
 
-@pytest.mark.parametrize('path', ['drop_const', 'tolerance', 'ema_rampup', 'drops',
-                                  'sensor.width', 'drops.rate_by', 'data.dir'])
+@pytest.mark.parametrize('path', ['r1_every', 'tolerance', 'ema_rampup', 'drops',
+                                  'sensor.width', 'drops.rate_weight', 'data.dir'])
 def test_a_missing_field_is_refused_by_name(path):
   c = tiny_config()
   *groups, last = path.split('.')
@@ -79,11 +80,21 @@ def test_an_old_run_read_through_load_is_complete(tmp_path):
   fields it predates then hold their legacy values, so the checks and the
   Setup can read them."""
   c = tiny_config()
-  for f in ('eqlr', 'augment_style', 'drop_const', 'drops'):
+  for f in ('eqlr', 'augment_style', 'drops'):
     del c[f]
   configs.save(str(tmp_path), c)
   loaded = configs.load(str(tmp_path))
   configs.validate(loaded)
-  assert (loaded.eqlr, loaded.augment_style, loaded.drop_const) == ('fan_in', 'symmetric',
-                                                                    -1.0)
+  assert (loaded.eqlr, loaded.augment_style) == ('fan_in', 'symmetric')
+  # drop_const left the library: runs that kept ALPHA (-1) load without it.
+  saved = json.loads((tmp_path / configs.FILE).read_text())
+  for value, loads in ((-1.0, True), (-2.0, False)):
+    (tmp_path / configs.FILE).write_text(json.dumps(dict(saved, drop_const=value)))
+    if loads:
+      assert 'drop_const' not in configs.load(str(tmp_path))
+    else:
+      with pytest.raises(configs.ConfigError, match=(
+          r'^config field drop_const=-2\.0: this option was removed; commit '
+          rf"{configs.LAST_WITH['drop_const']} is the last that has it$")):
+        configs.load(str(tmp_path))
   assert loaded.drops.to_dict() == configs.drop_defaults().to_dict()

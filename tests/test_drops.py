@@ -34,22 +34,6 @@ def _setup(init=True, ring_keep=None, **options):
                     if init else None)
 
 
-@pytest.mark.parametrize('rate_by', ['image', 'ring'])
-def test_rate_penalty_against_numpy(rate_by):
-  _, keep = _scans_and_keep(seed=1, rate=0.5)
-  _, real = _scans_and_keep(seed=2, rate=0.2)
-  k, r = np.asarray(keep, np.float64), np.asarray(real, np.float64)
-  axes = (0, 2) if rate_by == 'ring' else (0, 1, 2)
-  want = np.mean(np.square(k.mean(axis=axes) - r.mean(axis=axes)))
-  got = drops.rate_penalty(keep, real, rate_by)
-  assert float(got) == pytest.approx(want, rel=1e-5)
-  # Only the generated mask is pushed: towards the real rate.
-  g = jax.grad(lambda m: drops.rate_penalty(m, real, rate_by))(keep)
-  assert float(g.sum()) < 0  # generated keeps less than real: raising it pays.
-  assert float(jnp.abs(jax.grad(lambda r: drops.rate_penalty(
-      keep, r, rate_by))(real)).max()) == 0.0
-
-
 def test_cell_rate_penalty_against_numpy():
   rng = np.random.default_rng(6)
   keep = rng.uniform(size=(4, 5, 7)).astype(np.float32)
@@ -101,13 +85,8 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
   # Away from the seams (the window reaches 2 columns): near pixels are
   # pushed to keep (the penalty falls as they rise), far ones to drop.
   assert (g[..., 2:14] < 0).all() and (g[..., 18:30] > 0).all()
-  ring = drops.rate_penalty(fake_keep, real[1], 'ring')
-  assert float(ring) == 0.0
-  # Drops at another drop constant (config drop_const) change nothing.
-  at = lambda x, k, c: jnp.where(k > 0, x, c)
-  moved = drops.ring_depth_rate_penalty(
-      sensor, (at(fake_scan, fake_keep, -2.0), fake_keep), (at(real[0], real[1], -2.0), real[1]))
-  assert float(moved) == float(penalty(fake_keep))
+  ring = np.asarray(fake_keep).mean(axis=(0, 2)) - real_keep.mean(axis=(0, 2))
+  assert np.abs(ring).max() == 0.0  # the per-ring rates already agree
   # A scene at one depth falls in the bin that depth names.
   for d, want in ((3.0, 1), (12.0, 3), (50.0, 7), (100.0, 8)):
     x1 = jnp.full((1, 4, 32), float(codec.encode(np.float32(d), sensor)))
@@ -117,7 +96,7 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
 
 def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
   _, setup, state = _setup(ring_keep=np.linspace(0.3, 0.9, 16), rate_weight=1.0,
-                           rate_by='ring', rate_head_only=True, ring_bias=True)
+                           rate_head_only=True, ring_bias=True)
   gen, variant = setup.generator, setup.settings.variant
   z = jax.random.normal(jax.random.key(2), (4, setup.settings.latent_dim))
   raw, raw_head = gen.apply(state.g_params, z, detached_head=True)
@@ -127,7 +106,8 @@ def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
 
   def rate(p, detached):
     out = gen.apply(p, z, detached_head=True)[1 if detached else 0]
-    return drops.rate_penalty(variant.measurability(variant.logit(out)), real, 'ring')
+    keep = variant.measurability(variant.logit(out))  # each ring's rate, pulled to real's
+    return jnp.mean(jnp.square(keep.mean(axis=(0, 2)) - real.mean(axis=(0, 2))))
   for detached in (True, False):
     g = jax.grad(rate)(state.g_params, detached)['params']
     head = {'head', 'head_bias', 'ring_bias'}
@@ -219,10 +199,9 @@ def test_ring_bias_starts_each_ring_at_the_data_keep_rate():
 
 
 def test_a_step_with_the_rate_options_moves_each_ring_to_its_rate():
-  # rate_by='ring_depth' (its cells nest in the rings); 'ring' runs in
-  # test_the_dip_term_fills_the_generated_dips.
+  # (The rate term's cells nest in the rings.)
   c, setup, state = _setup(ring_keep=np.full(16, 0.5), mask_bias=1.4, rate_weight=1e4,
-                           rate_by='ring_depth', rate_head_only=True, ring_bias=True)
+                           rate_head_only=True, ring_bias=True)
   mesh = parallel.data_mesh(jax.devices()[:1])
   step = parallel.data_parallel(trainer.step_fn(setup), mesh)
   state = parallel.replicate(state, mesh)
@@ -242,8 +221,8 @@ def test_a_step_with_the_rate_options_moves_each_ring_to_its_rate():
   assert (moved[:8] > 0).all() and (moved[8:] < 0).all()
 
 
-@pytest.mark.parametrize('field,value', [('rate_weight', -1.0), ('rate_by', 'pixel'),
-                                         ('rate_head_only', True), ('dip_weight', -1.0)])
+@pytest.mark.parametrize('field,value', [('rate_weight', -1.0), ('rate_head_only', True),
+                                         ('dip_weight', -1.0)])
 def test_bad_drop_options_name_the_field(field, value):
   c = tiny_config()
   c.drops[field] = value  # rate_head_only without a rate term
@@ -306,6 +285,19 @@ def test_a_removed_option_loads_where_it_was_off_and_is_refused_where_on(tmp_pat
         rf'^config field drops\.{field}={value!r}: this option was removed; '
         rf'commit {last} is the last that has it$')):
       configs.load(str(tmp_path))
+  # rate_by left with its cells the rate term: its other values load where
+  # no rate term was on, and are refused where one was.
+  for by, weight, loads in (('image', 0.0, True), ('ring_depth', 100.0, True),
+                            ('ring', 10.0, False), ('image', 1.0, False)):
+    drops_ = dict(saved['drops'], rate_by=by, rate_weight=weight)
+    path.write_text(json.dumps(dict(saved, drops=drops_)))
+    if loads:
+      assert configs.load(str(tmp_path)).drops.rate_weight == weight
+    else:
+      with pytest.raises(configs.ConfigError, match=(
+          rf"^config field drops\.rate_by='{by}': this option was removed; commit "
+          rf"{configs.LAST_WITH['rate_by']} is the last that has it \(the rate term")):
+        configs.load(str(tmp_path))
 
 
 def test_a_generator_description_with_range_slope_off_still_loads(tiny, tmp_path):
@@ -338,8 +330,8 @@ def test_the_dip_term_fills_the_generated_dips():
   the generated returns, where the same step without it does not."""
   gaps = {}
   for weight in (0.0, 1e3):
-    c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_by='ring',
-                             rate_head_only=True, dip_weight=weight)
+    c, setup, state = _setup(mask_detached=True, rate_weight=1.0, rate_head_only=True,
+                             dip_weight=weight)
     mesh = parallel.data_mesh(jax.devices()[:1])
     step = parallel.data_parallel(trainer.step_fn(setup), mesh)
     z = jax.random.normal(jax.random.key(2), (c.batch_size, setup.settings.latent_dim))

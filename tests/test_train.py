@@ -64,19 +64,29 @@ def test_rate_terms_are_the_global_batch_s_on_four_devices():
   assert_same_training(one, four)
 
 
-@pytest.mark.parametrize('rate_by', ['image', 'ring'])
-def test_rate_penalty_on_four_devices_is_the_global_batch_s(rate_by):
+def test_rate_penalty_on_four_devices_is_the_global_batch_s():
+  """The cells' counts are summed over devices: each device's pair of scans
+  keeps at its own rate, so no device alone has the batch's rates."""
   from jax.sharding import PartitionSpec as P
+  from dusty_jax import codec
+  from dusty_jax.sensor import tiny_sensor
+  sensor = tiny_sensor(16, 64)
   rng = np.random.default_rng(3)
-  keep = rng.uniform(size=(8, 16, 64)).astype(np.float32)
-  # Each device's pair of scans keeps at its own rate.
-  real = (rng.uniform(size=keep.shape) < np.repeat([0.9, 0.6, 0.3, 0.1], 2)[:, None, None])
-  real = real.astype(np.float32)
-  alone = drops.rate_penalty(keep, real, rate_by)
-  sharded = jax.jit(jax.shard_map(lambda k, r: drops.rate_penalty(k, r, rate_by, parallel.AXIS),
-                                  mesh=parallel.data_mesh(jax.devices()),
-                                  in_specs=(P(parallel.AXIS), P(parallel.AXIS)), out_specs=P()))
-  np.testing.assert_allclose(sharded(keep, real), alone, rtol=1e-5)
+  scans = np.asarray(codec.encode(rng.uniform(2, 100, (8, 16, 64)).astype(np.float32),
+                                  sensor))
+  keep = rng.uniform(size=scans.shape).astype(np.float32)
+  real = (rng.uniform(size=scans.shape) < np.repeat([0.9, 0.6, 0.3, 0.1], 2)[:, None, None])
+  real = (np.where(real, scans, codec.ALPHA), real.astype(np.float32))
+  fake = (np.where(keep > 0.5, scans, codec.ALPHA), keep)
+  alone = drops.ring_depth_rate_penalty(sensor, fake, real)
+  assert float(alone) > 0
+  sharded = jax.jit(jax.shard_map(
+      lambda f, r: drops.ring_depth_rate_penalty(sensor, f, r, parallel.AXIS),
+      mesh=parallel.data_mesh(jax.devices()), in_specs=(P(parallel.AXIS), P(parallel.AXIS)),
+      out_specs=P()))
+  np.testing.assert_allclose(sharded(fake, real), alone, rtol=1e-5)
+  one_device = drops.ring_depth_rate_penalty(sensor, *((a[:2], b[:2]) for a, b in (fake, real)))
+  assert abs(float(one_device) - float(alone)) > 1e-3
 
 
 @pytest.mark.parametrize('batch, cores, want', [

@@ -37,7 +37,7 @@ KEEP_RATE_LOGIT = 1.386  # logit(0.8): the simulated scans keep ~80% of pixels.
 
 # Pieces of the variants below.
 CHANNEL = {'mask_channel': 1.0, 'mask_noise': 0.1, 'mask_dropout': 0.5}
-RING_DEPTH = {'rate_by': 'ring_depth', 'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True}
+RING_DEPTH = {'mask_bias': KEEP_RATE_LOGIT, 'ring_bias': True}  # (rate_by='ring_depth')
 
 VARIANTS = {
     'authors': {},

@@ -26,7 +26,7 @@ DROPS = dict(mask_channel=1.0, mask_noise=0.1, mask_dropout=0.5, rate_weight=10.
              mask_bias=1.386)
 # Drops by ring and range: G matches the real keep rate of each (ring,
 # neighbours' depth) cell; one learned measurability offset per ring.
-RANGE = dict(rate_weight=100.0, rate_by='ring_depth', mask_bias=1.386, ring_bias=True)
+RANGE = dict(rate_weight=100.0, mask_bias=1.386, ring_bias=True)
 # The rate term trains only the measurability head.
 HEAD = dict(RANGE, rate_head_only=True)
 # No gradient of the mask reaches the trunk (sim-dusty1-detached).
