@@ -24,13 +24,13 @@ def unusable_reason(depth: np.ndarray, sensor: SensorSpec) -> str | None:
   returns = finite[finite != 0]
   if not returns.size:
     return 'no return: every depth is 0 or not finite'
-  inside = (returns > sensor.min_depth) & (returns < sensor.max_depth)
-  if inside.mean() >= 0.5:
+  share = np.mean((returns > sensor.min_depth) & (returns < sensor.max_depth))
+  if share >= 0.5:
     return None
   lo, hi = float(returns.min()), float(returns.max())
   where = (f'every depth is below the sensor\'s minimum range of {sensor.min_depth} m'
            if hi <= sensor.min_depth else
-           f'{inside.mean():.0%} of the returns lie inside the sensor\'s range '
+           f'{share:.0%} of the returns lie inside the sensor\'s range '
            f'({sensor.min_depth}, {sensor.max_depth}) m')
   return (f'{where} (values in [{lo:.3g}, {hi:.3g}]): normalised or already encoded '
           'scans given as metres? The input takes metric depth')
@@ -61,9 +61,9 @@ def read_scans(path: str, sensor: SensorSpec, log=print):
 
   ``.bin`` files are unfolded with the sensor; ``.npy`` files hold metric
   depth (H, W) or (N, H, W); of those, invert's outputs that are not depth
-  (INVERT_OUTPUTS) are skipped. A file that cannot be read, or a scan with no
-  depth inside the sensor's range (nothing to fit: e.g. encoded scans given
-  as metres), is reported with its file and skipped (and counted), as
+  (INVERT_OUTPUTS) are skipped. A file that cannot be read, or a scan with
+  fewer than half of its returns inside the sensor's range
+  (:func:`unusable_reason`: e.g. encoded scans given as metres), is reported with its file and skipped (and counted), as
   prepare does; only no usable scan at all fails.
   """
   if os.path.isdir(path):
@@ -107,5 +107,5 @@ def read_scans(path: str, sensor: SensorSpec, log=print):
   if bad_files:
     log(f'{bad_files} of {len(files)} input files skipped')
   if len(skipped) > bad_files:
-    log(f'{len(skipped) - bad_files} scans without a return in range skipped')
+    log(f'{len(skipped) - bad_files} scans with too few returns in range skipped')
   return out
