@@ -147,18 +147,25 @@ def test_direct_embree_equals_trimesh_embree(seed, kind):
 
 
 @needs_embree
-def test_direct_embree_first_hits_small_mesh(monkeypatch):
-  """Misses, a degenerate face and a mesh away from the origin: the same
-  (tri, ray, location) as ray_pyembree, the hit faces' normals as
-  trimesh's face normals, and face_normals as trimesh's (0 where degenerate)."""
+def test_direct_embree_first_hits_small_mesh():
+  """Misses, a degenerate face, a mesh away from the origin and two faces
+  met at a grazing angle: the same (tri, ray, location) as ray_pyembree,
+  the hit faces' normals as trimesh's face normals, and face_normals as
+  trimesh's (0 where degenerate)."""
   import trimesh
   box = trimesh.creation.box(extents=(2.0, 3.0, 1.0))
-  v = np.concatenate([box.vertices + [10.0, 1.0, 0.2], [[5, 0, 0], [5, 0, 0], [5, 0, 0]]])
-  f = np.concatenate([box.faces, [[8, 9, 10]]])  # the last face has no area
-  mesh = trimesh.Trimesh(v, f, process=False)
+  # Faces crossing the y axis at y = 10 and y = -10, tilted 1e-6 and 1e-3
+  # from it: ray_pyembree drops the first hit (|cos| <= 1e-5), keeps the other.
+  tilted = [[[s * t * -2, s * 8, -1], [s * t * 2, s * 12, -1], [0, s * 10, 1]]
+            for s, t in ((1, 1e-6), (-1, 1e-3))]
+  v = np.concatenate([box.vertices + [10.0, 1.0, 0.2], [[5, 0, 0], [5, 0, 0], [5, 0, 0]],
+                      *tilted])
+  f = np.concatenate([box.faces, [[8, 9, 10], [11, 12, 13], [14, 15, 16]]])
+  mesh = trimesh.Trimesh(v, f, process=False)  # (face 12 has no area)
   rng = np.random.default_rng(0)
   d = np.concatenate([rng.normal(size=(300, 3)) + [3.0, 0.0, 0.0],
-                      [[1.0, 0.07, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]])
+                      [[1.0, 0.07, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0],
+                       [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]])
   rays = embree.Rays(d)
   tri, ray, loc, normals = embree.first_hits(mesh.vertices.view(np.ndarray),
                                              mesh.faces.view(np.ndarray), rays)
@@ -169,24 +176,33 @@ def test_direct_embree_first_hits_small_mesh(monkeypatch):
   assert 0 < len(ray) < len(d)
   assert normals.tobytes() == mesh.face_normals[tri].tobytes()
   assert len(np.unique(tri)) > 1
-  # Hits that trimesh drops (a ray nearly parallel to its face) leave with
-  # their normals: drop every other one as planes_lines would.
-  planes_lines = embree.intersections.planes_lines
-
-  def dropping(**kw):
-    loc, ok = planes_lines(**kw)
-    drop = np.zeros_like(ok)
-    drop[::2] = True
-    return loc[~drop[ok]], ok & ~drop
-
-  monkeypatch.setattr(embree.intersections, 'planes_lines', dropping)
-  tri2, ray2, loc2, normals2 = embree.first_hits(mesh.vertices.view(np.ndarray),
-                                                 mesh.faces.view(np.ndarray), rays)
-  assert 0 < len(tri2) < len(tri) and np.array_equal(ray2, ray[1::2])
-  assert normals2.tobytes() == mesh.face_normals[tri2].tobytes() == normals[1::2].tobytes()
+  assert len(d) - 2 not in ray and tri[ray == len(d) - 1] == [14]
   every = embree.face_normals(mesh.vertices.view(np.ndarray), mesh.faces.view(np.ndarray))
   assert every.tobytes() == mesh.face_normals.tobytes()
-  assert (every[-1] == 0).all()
+  assert (every[12] == 0).all()
+
+
+@needs_embree
+def test_faces_toward_the_sensor_are_enough():
+  """embree.facing_origin drops exactly the faces turned away from the
+  origin (trimesh's normals), most of a scene's; Embree given only the rest
+  finds the same first hits: the same rays, materials and points."""
+  from dusty_jax.sensor import get_sensor
+  mesh, material, _ = scene.build_scene(7, 'residential')
+  vertices, faces = mesh.vertices.view(np.ndarray), mesh.faces.view(np.ndarray)
+  facing = embree.facing_origin(vertices, faces)
+  toward = np.einsum('ij,ij->i', mesh.face_normals, vertices[faces[:, 0]])
+  clear = np.abs(toward) > 1e-9
+  np.testing.assert_array_equal(facing[clear], toward[clear] < 0)
+  assert 0.3 < facing.mean() < 0.6
+  rays = simulated_lidar._embree_rays(get_sensor('kitti'))
+  every = embree.first_hits(vertices, faces, rays)
+  some = embree.first_hits(vertices, faces, rays, np.flatnonzero(facing))
+  np.testing.assert_array_equal(some[1], every[1])
+  np.testing.assert_array_equal(material[some[0]], material[every[0]])
+  assert facing[every[0]].all()  # the full scene's first hits face the sensor too
+  np.testing.assert_allclose(some[2], every[2], rtol=1e-12, atol=1e-9)
+  np.testing.assert_array_equal(some[3], every[3])
 
 
 def test_scene_builder_equals_parts_one_at_a_time():
