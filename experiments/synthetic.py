@@ -1,7 +1,7 @@
 """DUSty-I on simulated HDL-64E scans: the main job, which finishes on a CPU.
 
 The first run simulates the scenes (2,000 + 200 + 200 scans) and caches them:
-36 CPU-seconds, 20.0 s on a 2-core AMD EPYC VM (load 2-4);
+24 CPU-seconds, 12.4 s on a 2-core AMD EPYC VM (load 1-3);
 benchmarks/synthesize.py.
 Then it trains the study's CPU-scale DUSty-I as the authors do for 2,500
 steps, fits its drop levels per (ring, depth) cell to inversions of 256

@@ -12,11 +12,11 @@ from dusty_jax.sensor import SensorSpec
 
 
 # CPU seconds per simulated 64x256 scan, all in (workers' start-up, writing):
-# the default data (2,400 scans) took 35.9 s of CPU, parent and workers, and
-# 20.0 s of wall time on a 2-core AMD EPYC VM at a load average of 2-4
+# the default data (2,400 scans) took 24.1 s of CPU, parent and workers, and
+# 12.4 s of wall time on a 2-core AMD EPYC VM at a load average of 1-3
 # (benchmarks/synthesize.py --full, median of 3, results/synthesize.json,
 # 2026-11-26).
-SIMULATION_CPU_S = 0.015
+SIMULATION_CPU_S = 0.010
 
 
 def default_cache() -> str:
@@ -56,7 +56,7 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
     scans = n + 2 * max(n // 10, 1)  # train, val, test (write_dataset)
     log(f'simulating {n} training scans (+ val, test: {scans} in all) into '
         f'{directory}, once (cached): about {scans * SIMULATION_CPU_S / workers:.0f} s '
-        f'with {workers} idle cores (the default 2,400 took 36 CPU-s on a 2-core '
+        f'with {workers} idle cores (the default 2,400 took 24 CPU-s on a 2-core '
         'AMD EPYC VM)')
     synthetic.write_dataset(directory, sensor, n, seed=config.data.seed,
                             workers=workers)
