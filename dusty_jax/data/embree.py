@@ -197,7 +197,8 @@ def facing_origin(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
   c -= a
   toward = ((b[1] * c[2] - b[2] * c[1]) * a[0] + (b[2] * c[0] - b[0] * c[2]) * a[1]
             + (b[0] * c[1] - b[1] * c[0]) * a[2])
-  # |rounding error| <~ 10 eps |b| |c| |a| (L1 norms bound the L2 ones).
+  # Rounding errs by less than about 10 eps |a| |b| |c| (2e-15 of it); the
+  # margin is 1e-12 of it (L1 norms, which bound the L2 ones).
   margin = 1e-12 * np.abs(a).sum(0) * np.abs(b).sum(0) * np.abs(c).sum(0)
   return toward <= margin
 
