@@ -435,7 +435,7 @@ def test_ouster_dual_returns_keep_both(tmp_path):
   frame.field('RANGE2')[6, 8] = 5_000
   frame.field('REFLECTIVITY2')[6, 8] = 42
   frame.field('NEAR_IR')[6, 8] = 300
-  f = ouster.frame_fields(frame, info, core)
+  f = ouster.frame_fields(frame, info, core.XYZLut(info))
   np.testing.assert_array_equal(f['return_type'], [0, 1, 1])
   np.testing.assert_array_equal(f['ring'], [5, 5, 6])
   np.testing.assert_array_equal(f['range'], [10_000, 20_000, 5_000])

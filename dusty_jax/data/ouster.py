@@ -19,6 +19,7 @@ beam's elevation; from the sensor frame's origin 47%.
 
 from __future__ import annotations
 
+import functools
 import glob
 import json
 import os
@@ -35,6 +36,8 @@ CHANNELS = ('RANGE', 'REFLECTIVITY', 'SIGNAL', 'NEAR_IR', 'FLAGS')
 SECOND = '2'
 
 MM = 1e-3  # metres per millimetre: the metadata's offsets are in mm.
+
+LUTS_KEPT = 8  # XYZ tables kept, one per metadata file (a few MB each).
 
 
 def _sdk(path: str):
@@ -72,6 +75,16 @@ def _sensor_info(metadata: str, core):
     raise DataError(f'{metadata}: not an Ouster metadata file ({e})') from None
 
 
+@functools.lru_cache(maxsize=LUTS_KEPT)
+def _calibration(metadata: str, mtime_ns: int, size: int):
+  """(SensorInfo, XYZLut) of a metadata file, kept while the file is
+  unchanged: the SDK takes ~50 ms to build a 128 x 1024 table, the sweep's
+  whole reading budget."""
+  _, core = _sdk(metadata)
+  info = _sensor_info(metadata, core)
+  return info, core.XYZLut(info)
+
+
 def read_metadata(metadata: str) -> dict:
   """The beam calibration of an Ouster metadata json, as the SDK reads it.
 
@@ -93,8 +106,9 @@ def read_metadata(metadata: str) -> dict:
   }
 
 
-def frame_fields(frame, info, core) -> dict[str, np.ndarray]:
-  """The returns of one LidarFrame as named fields (module docstring).
+def frame_fields(frame, info, lut) -> dict[str, np.ndarray]:
+  """The returns of one LidarFrame as named fields (module docstring), with
+  the SDK's SensorInfo ``info`` of its recording and ``lut``, its XYZLut.
 
   Pixels of zero range (no return) are dropped. 'ring' is the pixel's row:
   the beam's index in the metadata (0 = top beam); 'intensity' is the
@@ -103,7 +117,6 @@ def frame_fields(frame, info, core) -> dict[str, np.ndarray]:
   0 for the first return and 1 for the second; a channel with no second
   twin (NEAR_IR) gives both returns of a pixel its one value.
   """
-  lut = core.XYZLut(info)
   origin = np.asarray(info.lidar_to_sensor_transform, np.float64)[:3, 3] * MM
   h, w = frame.h, frame.w
   present = set(frame.fields)
@@ -128,6 +141,8 @@ def frame_fields(frame, info, core) -> dict[str, np.ndarray]:
     if len(returns) > 1:
       out['return_type'] = np.full(int(keep.sum()), k, np.uint8)
     parts.append(out)
+  if len(parts) == 1:
+    return parts[0]
   return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -141,9 +156,13 @@ def read_ouster(pcap: str, metadata: str | None = None, frame: int = 0) -> dict[
   has), measurement_id and timestamp (ns) of the column, and return_type
   for a dual-return profile. Pixels without a return are left out.
   """
-  open_source, core = _sdk(pcap)
+  open_source, _ = _sdk(pcap)
   metadata = metadata or find_metadata(pcap)
-  _sensor_info(metadata, core)  # one clear error for a bad json first
+  try:
+    stat = os.stat(metadata)
+  except OSError as e:
+    raise DataError(f'{metadata}: cannot read the Ouster metadata ({e.strerror})') from None
+  info, lut = _calibration(os.path.abspath(metadata), stat.st_mtime_ns, stat.st_size)
   try:
     source = open_source(pcap, meta=[metadata], sensor_idx=0)
   except Exception as e:  # the SDK's SourceURLException, RuntimeError, ...
@@ -156,7 +175,7 @@ def read_ouster(pcap: str, metadata: str | None = None, frame: int = 0) -> dict[
         lidar_frame = frames[0]
         if lidar_frame is None:
           raise DataError(f'{pcap}: sweep {frame} has no lidar frame')
-        return frame_fields(lidar_frame, source.sensor_info[0], core)
+        return frame_fields(lidar_frame, info, lut)
       count += 1
   finally:
     source.close()
