@@ -185,6 +185,20 @@ def test_pcd_width_0_height_0_as_a_driver_writes_it(tmp_path):
 
 
 @needs_pcd
+@pytest.mark.parametrize('encoding', ['binary', 'binary_compressed'])
+def test_pcd_header_of_more_than_ten_lines(tmp_path, encoding):
+  """pypcd4 alone reads ten header lines and then takes the rest for data."""
+  fields = sweep(30)
+  path = tmp_path / 'long.pcd'
+  write_points(path, fields, encoding=encoding)
+  raw = path.read_bytes()
+  path.write_bytes(raw.replace(b'VERSION 0.7\n', b'VERSION 0.7\nSOURCE driver 2.1\n'
+                                                  b'# a comment\nSTAMP 1673400472\n'))
+  assert path.read_bytes().count(b'\n', 0, path.read_bytes().index(b'DATA')) == 12
+  assert_fields_equal(read_points(path), fields)  # a pathlib.Path too
+
+
+@needs_pcd
 def test_pcd_ascii_rows_split_at_any_whitespace(tmp_path):
   body = b'1.5 2 3 7 \n4\t5  6 8\t\n'  # trailing spaces and tabs, as some writers leave
   got = read_points(pcd_file(tmp_path / 'a.pcd', body))

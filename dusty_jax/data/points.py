@@ -40,6 +40,7 @@ where they write), so tests can write a sweep and read it back.
 
 from __future__ import annotations
 
+import io
 import os
 
 import numpy as np
@@ -86,6 +87,7 @@ def read_points(path: str, *, metadata: str | None = None,
   ``frame`` are for an Ouster ``.pcap`` only (ouster.read_ouster): its
   metadata json (default: the json beside it) and which sweep to read.
   """
+  path = os.fspath(path)
   suffix = _suffix(path)
   if suffix not in READERS:
     raise DataError(f'{path}: unknown point cloud format {suffix or "(no extension)"!r}; '
@@ -200,11 +202,12 @@ def _pypcd4(path: str):
 
 def _read_pcd(path: str) -> dict[str, np.ndarray]:
   """A PCD file through pypcd4, which reads every field type, WIDTH 0
-  headers and the three DATA kinds; two gaps are filled here. pypcd4 splits
+  headers and the three DATA kinds; three gaps are filled here. pypcd4 splits
   ASCII rows at single spaces, so a row with a trailing space or a tab (as
   some writers leave) fails there: ASCII data is read with numpy's
-  whitespace splitting and pypcd4's dtype. And it reads binary data short of
-  POINTS without a word: the size is checked first.
+  whitespace splitting and pypcd4's dtype. It reads binary data short of
+  POINTS without a word: the size is checked first. And it takes the first
+  ten lines of a header as all of it: it is given its own.
   """
   pypcd4 = _pypcd4(path)
   with open(path, 'rb') as f:
@@ -245,9 +248,11 @@ def _read_pcd(path: str) -> dict[str, np.ndarray]:
       if kind == 'binary' and have < need:
         raise DataError(f'{path}: PCD binary data of {have} bytes, short of the {need} '
                         f'that POINTS {meta.points} of {dtype.itemsize} bytes need; truncated')
-      f.seek(0)
+      # pypcd4 stops reading a header at its tenth line: it is handed the
+      # header it writes itself, whatever lines and comments the file had.
+      body = io.BytesIO(meta.compose_header().encode() + f.read())
       try:
-        data = pypcd4.PointCloud.from_fileobj(f).pc_data
+        data = pypcd4.PointCloud.from_fileobj(body).pc_data
       except Exception as e:  # lzf's and struct's errors, of corrupt data
         raise DataError(f'{path}: bad PCD {kind} data ({type(e).__name__}: {e})') from None
   if len(data) != meta.points:
@@ -310,6 +315,7 @@ def write_points(path: str, fields: dict[str, np.ndarray], *, encoding: str | No
   (:func:`ring_field`); ``.bin`` float32 x, y, z, intensity. Intensity
   missing is written as 0; other fields are left out.
   """
+  path = os.fspath(path)
   suffix = _suffix(path)
   if suffix not in WRITERS:
     raise ValueError(f'{path}: cannot write {suffix or "(no extension)"!r}; known: '
