@@ -274,6 +274,9 @@ def _malformed(tmp_path):
       ('archive.npy', lambda p: p.write_bytes(_npz_bytes(tmp_path)), 'a .npz archive'),
       ('nox.npy', lambda p: np.save(p, np.zeros(4, [('a', 'f4'), ('y', 'f4'), ('z', 'f4')])),
        'no x field; fields: a, y, z'),
+      ('normals.npy', lambda p: np.save(p, np.zeros(4, [('x', 'f4'), ('y', 'f4'), ('z', 'f4'),
+                                                         ('normal', 'f4', 3)])),
+       r'fields must be 1-D arrays of one length, got shapes \[\(4,\), \(4, 3\)\]'),
   ]
   plybin = tmp_path / 'whole.ply'
   write_points(str(plybin), fields)
@@ -325,6 +328,19 @@ def test_every_malformed_file_gives_one_line_naming_it(tmp_path):
     with pytest.raises(DataError, match=problem) as excinfo:
       read_points(str(path))
     _one_line_naming(excinfo, path)
+
+
+def test_what_a_writer_cannot_write_is_refused_naming_the_file(tmp_path):
+  fields = sweep(10)
+  with pytest.raises(ValueError, match=r"s\.las: cannot write '\.las'"):
+    write_points(str(tmp_path / 's.las'), fields)
+  with pytest.raises(ValueError, match=r"s\.ply: field type 'u8' not in"):
+    write_points(str(tmp_path / 's.ply'), {**fields, 't': np.zeros(10, np.uint64)})
+  with pytest.raises(ValueError, match=r's\.npy: fields must be 1-D arrays of one length'):
+    write_points(str(tmp_path / 's.npy'), {**fields, 'x': fields['x'][:9]})
+  with pytest.raises(ValueError, match=r's\.npy: no z field'):
+    write_points(str(tmp_path / 's.npy'), {'x': fields['x'], 'y': fields['y']})
+  assert not list(tmp_path.iterdir())
 
 
 def test_the_options_of_a_pcap_refused_elsewhere(tmp_path):
@@ -423,6 +439,8 @@ def test_ouster_sample_read():
   alt = cal['beam_altitude_angles']
   assert alt.shape == (128,) and (np.diff(alt) < 0).all()  # top beam first
   assert cal['lidar_origin_to_beam_origin_mm'] == pytest.approx(15.806)
+  assert cal['beam_to_lidar_transform'][0, 3] == pytest.approx(15.806)
+  assert cal['lidar_to_sensor_transform'][2, 3] == pytest.approx(36.18)
   assert (cal['rings'], cal['columns']) == (128, 1024)
   el = _elevation(f)
   nearest = np.abs(el[:, None] - alt[None]).argmin(1)

@@ -90,8 +90,8 @@ def read_metadata(metadata: str) -> dict:
 
   {'beam_altitude_angles', 'beam_azimuth_angles': (H,) degrees in beam
   order (Ouster's: top beam first), 'lidar_origin_to_beam_origin_mm',
-  'lidar_to_sensor_transform': (4, 4) with mm translation, 'columns',
-  'rings', 'prod_line'}.
+  'beam_to_lidar_transform' and 'lidar_to_sensor_transform': (4, 4) with
+  translations in mm, 'columns', 'rings', 'prod_line'}.
   """
   _, core = _sdk(metadata)
   info = _sensor_info(metadata, core)
@@ -99,6 +99,7 @@ def read_metadata(metadata: str) -> dict:
       'beam_altitude_angles': np.asarray(info.beam_altitude_angles, np.float64),
       'beam_azimuth_angles': np.asarray(info.beam_azimuth_angles, np.float64),
       'lidar_origin_to_beam_origin_mm': float(info.lidar_origin_to_beam_origin_mm),
+      'beam_to_lidar_transform': np.asarray(info.beam_to_lidar_transform, np.float64),
       'lidar_to_sensor_transform': np.asarray(info.lidar_to_sensor_transform, np.float64),
       'columns': int(info.format.columns_per_frame),
       'rings': int(info.format.pixels_per_column),

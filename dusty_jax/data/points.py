@@ -132,7 +132,8 @@ def _checked(fields: dict[str, np.ndarray], path: str) -> dict[str, np.ndarray]:
                     f'{", ".join(fields) or "none"}')
   lengths = {np.shape(v) for v in fields.values()}
   if len(lengths) != 1 or len(next(iter(lengths))) != 1:
-    raise DataError(f'{path}: fields of unequal shapes {sorted(lengths)}')
+    raise DataError(f'{path}: fields must be 1-D arrays of one length, got shapes '
+                    f'{sorted(lengths)}')
   for k in ('x', 'y', 'z'):
     if fields[k].dtype.kind != 'f':
       fields[k] = fields[k].astype(np.float64)
