@@ -449,7 +449,7 @@ def test_ouster_sample_read():
                              f['range'] / 1000, atol=0.02)  # beam origins are 16 mm out
   other = read_points(pcap, metadata=meta, frame=2)
   assert len(other['x']) != n
-  with pytest.raises(DataError, match='no sweep 3; the recording holds 3'):
+  with pytest.raises(DataError, match='no complete sweep 3; the recording holds 3 complete and 0'):
     read_points(pcap, frame=3)
 
 
@@ -475,3 +475,33 @@ def test_ouster_dual_returns_keep_both(tmp_path):
   np.testing.assert_array_equal(f['near_ir'], [0, 0, 300])
   xyz = np.stack([f['x'], f['y'], f['z']], 1)
   assert np.linalg.norm(xyz[1]) == pytest.approx(2 * np.linalg.norm(xyz[0]), rel=0.01)
+
+
+@needs_ouster
+def test_malformed_ouster_recordings_give_one_line(tmp_path):
+  meta = tmp_path / 'rec.json'
+  meta.write_bytes(open(sample(OUSTER_JSON), 'rb').read())
+  junk = tmp_path / 'junk.pcap'
+  junk.write_bytes(b'hello\n')
+  with pytest.raises(DataError, match='cannot open as an Ouster recording') as e:
+    read_points(str(junk), metadata=str(meta))
+  _one_line_naming(e, junk)
+  cut = tmp_path / 'cut.pcap'  # the capture's header and less than one sweep
+  cut.write_bytes(open(sample(OUSTER_PCAP), 'rb').read()[:20_000])
+  with pytest.raises(DataError, match='no complete sweep 0; the recording holds 0 complete '
+                                      'and 1 partial') as e:
+    read_points(str(cut), metadata=str(meta))
+  _one_line_naming(e, cut)
+  longer = tmp_path / 'longer.pcap'  # a sweep and most of the next
+  longer.write_bytes(open(sample(OUSTER_PCAP), 'rb').read()[:1_000_000])
+  assert len(np.unique(read_points(str(longer), metadata=str(meta))['measurement_id'])) == 1024
+  with pytest.raises(DataError, match='no complete sweep 1; the recording holds 1 complete '
+                                      'and 1 partial'):
+    read_points(str(longer), metadata=str(meta), frame=1)
+  bad = tmp_path / 'bad.json'
+  bad.write_text('{"beam_altitude_angles": []}')
+  with pytest.raises(DataError, match='not an Ouster metadata file') as e:
+    read_points(str(cut), metadata=str(bad))
+  _one_line_naming(e, bad)
+  with pytest.raises(DataError, match='cannot read the Ouster metadata') as e:
+    read_points(str(cut), metadata=str(tmp_path / 'gone.json'))

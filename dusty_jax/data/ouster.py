@@ -50,6 +50,11 @@ def _sdk(path: str):
   return open_source, core
 
 
+def _one_line(e: Exception) -> str:
+  """An SDK error's message on one line (its own span several)."""
+  return ' '.join(str(e).split())
+
+
 def find_metadata(pcap: str) -> str:
   """The metadata json of ``pcap``: the one with its stem beside it, else
   the one json in its folder; DataError naming what was found otherwise."""
@@ -72,7 +77,7 @@ def _sensor_info(metadata: str, core):
     json.loads(text)
     return core.SensorInfo(text)
   except (OSError, ValueError, RuntimeError) as e:
-    raise DataError(f'{metadata}: not an Ouster metadata file ({e})') from None
+    raise DataError(f'{metadata}: not an Ouster metadata file ({_one_line(e)})') from None
 
 
 @functools.lru_cache(maxsize=LUTS_KEPT)
@@ -150,7 +155,9 @@ def frame_fields(frame, info, lut) -> dict[str, np.ndarray]:
 def read_ouster(pcap: str, metadata: str | None = None, frame: int = 0) -> dict[str, np.ndarray]:
   """The returns of sweep ``frame`` of an Ouster ``pcap`` as named fields.
 
-  ``metadata``: its json (default :func:`find_metadata`). Fields: x, y, z
+  ``frame`` counts complete sweeps: a partial one (a recording's first or
+  last, cut by its start or end) is skipped. ``metadata``: its json
+  (default :func:`find_metadata`). Fields: x, y, z
   (metres, float64, the lidar frame's origin: module docstring), ring (the
   beam's row, 0 = top), intensity, the frame's channels in lower case
   (range in mm, reflectivity, signal, near_ir, flags: those the profile
@@ -168,16 +175,18 @@ def read_ouster(pcap: str, metadata: str | None = None, frame: int = 0) -> dict[
     source = open_source(pcap, meta=[metadata], sensor_idx=0)
   except Exception as e:  # the SDK's SourceURLException, RuntimeError, ...
     raise DataError(f'{pcap}: cannot open as an Ouster recording with {metadata} '
-                    f'({type(e).__name__}: {e})') from None
-  count = 0
+                    f'({type(e).__name__}: {_one_line(e)})') from None
+  complete = partial = 0
   try:
     for frames in source:
-      if count == frame:
-        lidar_frame = frames[0]
-        if lidar_frame is None:
-          raise DataError(f'{pcap}: sweep {frame} has no lidar frame')
+      lidar_frame = frames[0]
+      if lidar_frame is None or not lidar_frame.complete():
+        partial += 1
+        continue
+      if complete == frame:
         return frame_fields(lidar_frame, info, lut)
-      count += 1
+      complete += 1
   finally:
     source.close()
-  raise DataError(f'{pcap}: no sweep {frame}; the recording holds {count} with {metadata}')
+  raise DataError(f'{pcap}: no complete sweep {frame}; the recording holds {complete} '
+                  f'complete and {partial} partial with {metadata}')

@@ -29,7 +29,10 @@ What a reader keeps, so the unfolding can decide (and count) what to drop:
   * Organized PCD clouds write NaN x, y, z where a beam had no return: kept as
     NaN (a KITTI ``.bin`` with NaN is refused, as the KITTI path always has).
   * Dual-return drivers write two points per firing: all are kept, with the
-    file's 'return_type' field where it has one.
+    file's 'return_type' field where it has one (its codes are the driver's).
+  * Other fields keep the driver's units: the VLP-16 sample's 'azimuth' runs
+    0-36000 (hundredths of a degree), the PandarXT16's 0-2 pi (radians).
+    Angles for the unfolding come from x, y, z.
 
 Every file that cannot be read raises one DataError (a ValueError) naming the
 file and the problem.
