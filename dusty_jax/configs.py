@@ -23,7 +23,11 @@ def default() -> ml_collections.ConfigDict:
   c.model = 'dusty1'             # baseline | dusty1 | dusty2
 
   c.sensor = ml_collections.ConfigDict()
-  c.sensor.preset = 'kitti'      # kitti (HDL-64E 64x256) | mpo (HDL-32E 32x256)
+  c.sensor.preset = 'kitti'      # a name of sensor.PRESETS: kitti (HDL-64E 64x256),
+                                 # mpo (HDL-32E 32x256), vlp16, hdl32e, hdl64e, os1-64, os1-128
+  c.sensor.file = ''             # a sensor spec JSON file (sensor.load); wins over preset
+  c.sensor.spec = ''             # the spec a run trained with, as JSON: written by the
+                                 # trainer into the run's config.json (wins over both)
   c.sensor.height = 0            # with preset '', a tiny sensor of this size
   c.sensor.width = 0             # 0: the preset's width
 
@@ -156,14 +160,22 @@ def validate(c) -> None:
   need(c.impl in IMPLS, 'impl', "must be '' (per backend: matmul on CPU, xla elsewhere), "
        "'matmul' or 'xla'")
   need(c.eqlr in models.EQLR, 'eqlr', f"must be one of {', '.join(map(repr, models.EQLR))}")
-  preset = c.sensor.preset
-  if preset and preset not in sensor_lib.PRESETS:
+  preset, file = c.sensor.preset, c.sensor.get('file')
+  if preset and not file and preset not in sensor_lib.PRESETS:
     raise ConfigError(f'config field sensor.preset={preset!r}: known presets are '
                       f"{', '.join(sorted(sensor_lib.PRESETS))} ('' with "
-                      'sensor.height and sensor.width: a tiny test sensor)')
-  if not preset and not (c.sensor.height >= 1 and c.sensor.width >= 1):
-    raise ConfigError('config field sensor.preset is empty: give a preset, or '
-                      'sensor.height and sensor.width >= 1 for a tiny sensor')
+                      'sensor.height and sensor.width: a tiny test sensor; or '
+                      'sensor.file=PATH: a sensor spec file)')
+  if not preset and not file and not (c.sensor.height >= 1 and c.sensor.width >= 1):
+    raise ConfigError('config field sensor.preset is empty: give a preset, '
+                      'sensor.file, or sensor.height and sensor.width >= 1 for a '
+                      'tiny sensor')
+  try:
+    spec = sensor_lib.from_config(c.sensor)
+    models.check_shape(spec)
+  except ValueError as e:  # DataError too: the file, named in its message
+    field = 'sensor.file' if file else 'sensor.width' if c.sensor.width else 'sensor.preset'
+    raise ConfigError(f'config field {field}={c.sensor[field.split(".")[1]]!r}: {e}') from None
   d = c.drops
   def need_drop(ok, field, why):
     if not ok:
@@ -260,9 +272,8 @@ def architecture_diff(old, new) -> dict:
     a, b = old.get(f), new.get(f)
     if f == 'drops':  # only these change what the networks' arrays are.
       a, b = (bool(o.drops.ring_bias) for o in (old, new))
-    if f == 'sensor':
-      a, b = (a.to_dict() if hasattr(a, 'to_dict') else a,
-              b.to_dict() if hasattr(b, 'to_dict') else b)
+    if f == 'sensor':  # the specs they resolve to, not how they name them
+      a, b = (sensor_lib.from_config(o.sensor).to_dict() for o in (old, new))
     if a != b:
       out[f] = (a, b)
   return out

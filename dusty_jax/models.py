@@ -49,8 +49,11 @@ EQLR = ('authors', 'fan_in')
 def check_shape(sensor: SensorSpec):
   h, w = sensor.shape
   if h % DOWNSAMPLE or w % DOWNSAMPLE:
+    near = max(DOWNSAMPLE, DOWNSAMPLE * round(w / DOWNSAMPLE))
+    fix = (f'; the nearest valid width is {near} (--config.sensor.width={near})'
+           if w % DOWNSAMPLE else '')
     raise ValueError(f'sensor {sensor.name!r}: H and W must be multiples of '
-                     f'{DOWNSAMPLE} for this network, got {h}x{w}')
+                     f'{DOWNSAMPLE} for this network, got {h}x{w}{fix}')
   return h // DOWNSAMPLE, w // DOWNSAMPLE
 
 

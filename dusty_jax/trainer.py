@@ -21,6 +21,7 @@ A step composes three pure functions, each tested alone: ``d_step``, then
 from __future__ import annotations
 
 import functools
+import json
 import os
 import sys
 import time
@@ -404,6 +405,8 @@ def _as_trained(config):
   (another device count trains to float rounding of this run)."""
   saved = config.copy_and_resolve_references()
   saved.unlock()
+  # The sensor itself, so a copy of the run needs no spec file.
+  saved.sensor.spec = json.dumps(sensor_lib.from_config(config.sensor).to_dict())
   saved.trained_on = {'devices': jax.device_count(), 'processes': jax.process_count(),
                       'platform': jax.default_backend()}
   return saved

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 
 import numpy as np
 
-from dusty_jax import codec
+from dusty_jax import codec, sensor as sensor_lib
 from dusty_jax.data import arrays
 from dusty_jax.sensor import SensorSpec
 
@@ -27,8 +29,18 @@ def default_cache() -> str:
 def synthetic_dir(config, sensor: SensorSpec) -> str:
   cache = config.data.cache or default_cache()
   return os.path.join(cache, 'synthetic',
-                      f'{sensor.name}_{sensor.height}x{sensor.width}'
+                      f'{sensor.name}_{sensor.height}x{sensor.width}{spec_key(sensor)}'
                       f'_n{config.data.num_synthetic}_s{config.data.seed}')
+
+
+def spec_key(sensor: SensorSpec) -> str:
+  """'' for a preset as it is (the cache names of earlier versions), else
+  a hash of the spec: simulated scans are cached by the spec that rendered
+  them, not by its name."""
+  if sensor_lib.PRESETS.get(sensor.name) == sensor or sensor.name.startswith('tiny'):
+    return ''
+  digest = hashlib.sha1(json.dumps(sensor.to_dict(), sort_keys=True).encode())
+  return '_' + digest.hexdigest()[:10]
 
 
 def dataset_dir(config, sensor: SensorSpec, log=print) -> str:

@@ -82,6 +82,13 @@ def _suffix(path: str) -> str:
   return os.path.splitext(name)[1]
 
 
+def format_of(path: str) -> str | None:
+  """The point format a file name says ('.pcd', '.pcd.bin', ...), or None
+  for a name no reader here takes."""
+  suffix = _suffix(path)
+  return suffix if suffix in READERS else None
+
+
 def read_points(path: str, *, metadata: str | None = None,
                 frame: int = 0) -> dict[str, np.ndarray]:
   """The fields of the sweep in ``path``: {name: (N,) array}, with x, y, z.

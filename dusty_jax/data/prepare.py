@@ -1,4 +1,7 @@
-"""Turns a KITTI or MPO folder into prepared arrays (see data/arrays.py).
+"""Turns a KITTI or MPO folder, or a folder of point files of any spinning
+LiDAR (``files``: every format data/points.py reads), into prepared arrays
+(see data/arrays.py), with the sensor spec they were unfolded with beside
+them (``sensor.json``; estimated from the sweeps with ``sensor='auto'``).
 
 The command line is ``python -m dusty_jax.tools.prepare``.
 
@@ -14,6 +17,7 @@ grow with the number of scans (benchmarks/prepare_memory.py).
 
 from __future__ import annotations
 
+import fnmatch
 import os
 import sys
 import warnings
@@ -21,13 +25,72 @@ import warnings
 import numpy as np
 import tqdm
 
-from dusty_jax import codec
-from dusty_jax.data import arrays, kitti, mpo, unfolding
+from dusty_jax import codec, sensor as sensor_lib
+from dusty_jax.data import arrays, estimate, kitti, mpo, points, unfolding
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec, get_sensor
 
-READERS = {'kitti': kitti, 'mpo': mpo}
 SPLITS = ('train', 'val', 'test')
+SENSOR_FILE = 'sensor.json'  # the spec a prepared folder was unfolded with
+# A seeded split of a folder of files: the share of each split.
+FILE_SPLIT = {'train': 0.8, 'val': 0.1, 'test': 0.1}
+ESTIMATE_SWEEPS = 8  # training sweeps that --sensor auto estimates from
+# A sweep that loses more than this share of its points off the spec's beams
+# or range is reported (its counts logged).
+REPORT_DROPPED = 0.1
+
+
+class Files:
+  """A folder of point files (one sweep each, any format points.read_points
+  reads) as a dataset: split by the lists ``ROOT/{train,val,test}.txt``
+  (paths relative to ROOT, one per line) where they exist, else by a seeded
+  shuffle (FILE_SPLIT) of the files matching ``pattern`` under ROOT."""
+
+  def __init__(self, pattern: str = '*', seed: int = 0):
+    self.pattern, self.seed = pattern, seed
+
+  def _all(self, root: str) -> list[str]:
+    found = []
+    for d, _, names in os.walk(root):
+      for n in names:
+        path = os.path.join(d, n)
+        rel = os.path.relpath(path, root)
+        if (points.format_of(path) and (fnmatch.fnmatch(n, self.pattern) or
+                                        fnmatch.fnmatch(rel, self.pattern))):
+          found.append(path)
+    return sorted(found)
+
+  def list_split(self, root: str, split: str) -> list[str]:
+    lists = {s: os.path.join(root, f'{s}.txt') for s in SPLITS}
+    if any(os.path.isfile(p) for p in lists.values()):
+      if not os.path.isfile(lists[split]):
+        return []
+      with open(lists[split]) as f:
+        paths = [os.path.join(root, line.strip()) for line in f if line.strip()]
+      missing = [p for p in paths if not os.path.isfile(p)]
+      if missing:
+        raise DataError(f'{lists[split]}: {len(missing)} listed files do not exist, '
+                        f'e.g. {missing[0]}')
+      return paths
+    files = self._all(root)
+    order = np.random.default_rng(self.seed).permutation(len(files))
+    bounds = np.cumsum([0] + [round(FILE_SPLIT[s] * len(files)) for s in SPLITS])
+    bounds[-1] = len(files)
+    i = SPLITS.index(split)
+    return sorted(files[j] for j in order[bounds[i]:bounds[i + 1]])
+
+  @staticmethod
+  def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
+    """(H, W) depth[, (H, W, 3) xyz], :class:`unfolding.Unfolded` of a file."""
+    fields = points.read_points(path)
+    u = unfolding.unfold(fields, sensor, ring=points.ring_field(fields, path),
+                         source=path)
+    if u.off_elevation + u.out_of_range > REPORT_DROPPED * u.points:
+      warnings.warn(f'{path}: {u.summary()}', stacklevel=2)
+    return (u.depth, u.xyz, u) if return_xyz else (u.depth, u)
+
+
+READERS = {'kitti': kitti, 'mpo': mpo, 'files': Files()}
 MIN_VALID_FRACTION = 0.05  # a real scan returns on most of its pixels
 MIN_RING_FRACTION = 0.25
 
@@ -101,13 +164,33 @@ def _kept_splits(out: str, splits, sensor: SensorSpec) -> dict:
   return kept
 
 
-def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
-            splits=SPLITS, log=print) -> dict:
+def estimate_sensor(paths, out: str, log=print) -> SensorSpec:
+  """``prepare --sensor auto``: a spec estimated from up to ESTIMATE_SWEEPS
+  of ``paths``, printed with its fit and written to ``out/sensor.json``."""
+  if not paths:
+    raise DataError('--sensor auto: no training files to estimate the sensor from')
+  chosen = paths[:: max(1, len(paths) // ESTIMATE_SWEEPS)][:ESTIMATE_SWEEPS]
+  fit = estimate.estimate([points.read_points(p) for p in chosen],
+                          name=os.path.basename(os.path.normpath(out)) or 'estimated')
+  log(fit.summary())
+  log(f'(from {len(chosen)} training sweeps; the spec is written to '
+      f'{os.path.join(out, SENSOR_FILE)}: review it)')
+  return fit.spec
+
+
+def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None = None,
+            splits=SPLITS, log=print, pattern: str = '*', split_seed: int = 0) -> dict:
   """Prepares every split of ``dataset`` under ``root`` into ``out``.
+
+  ``sensor``: a SensorSpec, a preset's name or a spec file's path, or
+  'auto' (estimated from the training files); default the dataset's own
+  preset (kitti, mpo). ``pattern``, ``split_seed``: which files of a
+  ``files`` dataset, and how they split (:class:`Files`).
 
   Every input is checked before anything is created. ``meta.json`` then
   describes every split array in ``out``: the ones written now, and those
-  of an earlier run that this one leaves (``splits`` a subset).
+  of an earlier run that this one leaves (``splits`` a subset);
+  ``sensor.json`` the spec they were unfolded with.
   """
   if dataset not in READERS:
     raise ValueError(f'unknown dataset {dataset!r}; known: {sorted(READERS)}')
@@ -116,15 +199,24 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
     raise ValueError(f'unknown splits {unknown}; known: {list(SPLITS)}')
   if not os.path.isdir(root):
     raise FileNotFoundError(f'{root}: no such directory')
-  reader = READERS[dataset]
-  sensor = sensor or get_sensor(dataset)
+  reader = Files(pattern, split_seed) if dataset == 'files' else READERS[dataset]
+  if dataset == 'files' and not sensor:
+    raise DataError('a folder of point files needs --sensor: a preset '
+                    f'({", ".join(sorted(sensor_lib.PRESETS))}), a sensor spec '
+                    'file, or auto (estimated from the files)')
   listed = {split: reader.list_split(root, split) for split in splits}
   if not any(listed.values()):
     raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '
                             f'{list(splits)} (is this the dataset root?)')
+  if isinstance(sensor, str):
+    sensor = (estimate_sensor(listed.get('train') or reader.list_split(root, 'train'),
+                              out, log)
+              if sensor == 'auto' else get_sensor(sensor))
+  sensor = sensor or get_sensor(dataset)
   kept = _kept_splits(out, splits, sensor)
   old = arrays.read_meta(out)
   os.makedirs(out, exist_ok=True)
+  sensor_lib.save(sensor, os.path.join(out, SENSOR_FILE))
   meta = {'dataset': dataset, 'sensor': sensor.name, 'shape': list(sensor.shape),
           'splits': dict(kept),
           'skipped': {s: old.get('skipped', {}).get(s, []) for s in kept}}

@@ -1,6 +1,9 @@
 """Point cloud -> range image (numpy; offline data preparation).
 
-Two ways to turn a point cloud into an H x W image:
+Ways to turn a point cloud into an H x W image:
+  * :func:`to_range_image` (:func:`unfold`) for any spinning LiDAR: rows from
+    a ring field mapped by each ring's measured elevation, else from the
+    nearest beam's elevation; what it drops it counts (:class:`Unfolded`);
   * :func:`unfold_scan` follows the sensor's own firing order (KITTI stores
     points ring after ring, each ring sweeping in azimuth), as in the paper;
   * :func:`spherical_projection` bins by elevation angle, for sensors whose
@@ -19,6 +22,7 @@ import warnings
 import numpy as np
 
 from dusty_jax.codec import valid_depth
+from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
 
 
@@ -35,13 +39,6 @@ class UnfoldReport:
   @property
   def ok(self) -> bool:
     return self.rings_found == self.rings_expected
-
-
-def azimuth_to_column(azimuth, native_width: int) -> np.ndarray:
-  """Native column index of each azimuth (column 0 at the rear, clockwise)."""
-  frac = np.mod((1.0 - np.asarray(azimuth) / np.pi) / 2.0, 1.0)
-  return np.minimum(np.floor(frac * native_width), native_width - 1).astype(
-      np.int64)
 
 
 def check_points(points: np.ndarray, source: str = 'points') -> np.ndarray:
@@ -62,11 +59,12 @@ def check_points(points: np.ndarray, source: str = 'points') -> np.ndarray:
 def _scatter_nearest(rows, cols, xyz, keep, sensor, return_xyz):
   """Depth image where the nearest point wins each shared pixel; 0 = empty.
 
-  Only points on kept columns (every ``column_stride``-th native column)
-  count. With ``return_xyz`` also the (H, W, 3) points, zeros where empty.
+  ``cols`` is :meth:`SensorSpec.column_of`'s (column, kept): only points on
+  kept firings count. With ``return_xyz`` also the (H, W, 3) points, zeros where empty.
   """
-  keep = keep & (cols % sensor.column_stride == 0)
-  rows, cols, xyz = rows[keep], cols[keep] // sensor.column_stride, xyz[keep]
+  cols, kept = cols
+  keep = keep & kept
+  rows, cols, xyz = rows[keep], cols[keep], xyz[keep]
   depth = np.linalg.norm(xyz, axis=1)
   order = np.argsort(-depth, kind='stable')  # far first, near written last.
   image = np.zeros(sensor.shape, np.float32)
@@ -189,7 +187,7 @@ def unfold_scan(points: np.ndarray, sensor: SensorSpec, source: str = 'scan',
         'left empty', stacklevel=2)
 
   rows = rows_of_ring[ring_id]
-  cols = azimuth_to_column(azimuth, sensor.native_width)
+  cols = sensor.column_of(azimuth)
   out = _scatter_nearest(rows, cols, xyz, np.ones(len(xyz), bool), sensor,
                          return_xyz)
   report = UnfoldReport(n_rings, sensor.height, rows_of_ring, matched)
@@ -213,7 +211,7 @@ def unfold_rings(points: np.ndarray, ring: np.ndarray, sensor: SensorSpec,
                      f'sensor {sensor.name!r} has rings 0..{sensor.height - 1}')
   xyz = points[:, :3].astype(np.float64)
   rows = sensor.height - 1 - ring if bottom_first else ring
-  cols = azimuth_to_column(np.arctan2(xyz[:, 1], xyz[:, 0]), sensor.native_width)
+  cols = sensor.column_of(np.arctan2(xyz[:, 1], xyz[:, 0]))
   return _scatter_nearest(rows, cols, xyz, np.ones(len(xyz), bool), sensor,
                           return_xyz)
 
@@ -233,8 +231,212 @@ def spherical_projection(points: np.ndarray, sensor: SensorSpec,
   spacing = np.abs(np.diff(nominal)) if sensor.height > 1 else np.array([1.0])
   margin = 0.5 * np.concatenate([[spacing[0]], spacing, [spacing[-1]]])
   inside = (elev <= nominal[0] + margin[0]) & (elev >= nominal[-1] - margin[-1])
-  cols = azimuth_to_column(np.arctan2(xyz[:, 1], xyz[:, 0]), sensor.native_width)
+  cols = sensor.column_of(np.arctan2(xyz[:, 1], xyz[:, 0]))
   return _scatter_nearest(rows, cols, xyz, inside, sensor, return_xyz)
+
+
+# A file whose points mostly fall outside the spec is not of this sensor.
+MIN_INSIDE_SHARE = 0.5
+# A ring whose median elevation lies farther than this many beam spacings
+# outside the spec's top or bottom beam is not one of its beams.
+RING_MARGIN_SPACINGS = 1.0
+
+
+@dataclasses.dataclass
+class Unfolded:
+  """A range image and what became of each point (:func:`unfold`).
+
+  ``depth`` (H, W) metric range, 0 where no return; ``xyz`` (H, W, 3) the
+  winning points. The counts partition the points: ``no_return`` (at the
+  origin or NaN: placeholders for beams without a return), ``out_of_range``
+  (not inside the spec's (min_depth, max_depth)), ``off_elevation`` (farther
+  than half a beam spacing outside the spec's beams, or on a ring whose
+  median is), ``between_columns`` (firings between the kept ones),
+  ``hidden`` (a nearer point won the pixel), ``placed``.
+  ``ring_rows``: {ring id: row} where a ring field decided the rows.
+  """
+  depth: np.ndarray
+  xyz: np.ndarray
+  points: int
+  no_return: int
+  out_of_range: int
+  off_elevation: int
+  between_columns: int
+  hidden: int
+  placed: int
+  ring_rows: dict | None
+
+  def summary(self) -> str:
+    return (f'{self.placed} of {self.points} points placed; dropped: '
+            f'{self.no_return} without a return, {self.out_of_range} out of range, '
+            f'{self.off_elevation} off the beams, {self.between_columns} between '
+            f'kept columns, {self.hidden} behind a nearer point in their pixel')
+
+
+def _spacing_margins(sensor: SensorSpec) -> tuple[float, float]:
+  """Half the beam spacing above the top and below the bottom beam (radians)."""
+  if sensor.height == 1:
+    return np.deg2rad(1.0), np.deg2rad(1.0)
+  sp = np.abs(np.diff(sensor.elevation))
+  return 0.5 * sp[0], 0.5 * sp[-1]
+
+
+def nearest_beam(sin_el: np.ndarray, rng: np.ndarray, sensor: SensorSpec):
+  """(row, inside) of each point: the beam whose elevation model
+  ``sin(elevation) + b / range`` is nearest to the point's sin(elevation);
+  ``inside``: within half a beam spacing of the outermost beams."""
+  s = np.sin(sensor.elevation)[::-1]  # increasing
+  b = sensor.vertical_offset[::-1]
+  mid = 0.5 * (s[1:] + s[:-1])
+  j = np.searchsorted(mid, sin_el)  # nearest ignoring the offsets
+  if sensor.vertical_offset_m:  # then the neighbours, with them
+    best = j
+    cost = np.abs(sin_el - s[j] - b[j] / rng)
+    for d in (-1, 1):
+      k = np.clip(j + d, 0, len(s) - 1)
+      c = np.abs(sin_el - s[k] - b[k] / rng)
+      best = np.where(c < cost, k, best)
+      cost = np.minimum(c, cost)
+    j = best
+  row = sensor.height - 1 - j
+  top, bottom = _spacing_margins(sensor)
+  corrected = sin_el - b[j] / rng
+  inside = ((corrected <= np.sin(sensor.elevation[0] + top)) &
+            (corrected >= np.sin(sensor.elevation[-1] - bottom)))
+  return row, inside
+
+
+def rows_from_ring_field(ring: np.ndarray, elevation: np.ndarray,
+                         sensor: SensorSpec, source: str):
+  """({ring id: row}, row per point, -1 off the beams) from a ring field:
+  rings ordered by their median measured elevation, never by their ids,
+  and matched to rows monotonically (:func:`_assign_rows`), so a ring with
+  no return leaves its row empty."""
+  if ring.min() >= 0 and ring.max() < 2 ** 16:  # a counting sort: linear time
+    present = np.bincount(ring) > 0
+    ids = np.flatnonzero(present)
+    index = np.cumsum(present) - 1
+    inverse = index[ring].astype(np.uint16)
+  else:
+    ids, inverse = np.unique(ring, return_inverse=True)
+  if len(ids) > sensor.height:
+    raise DataError(f'{source}: {len(ids)} distinct ring ids, but sensor '
+                    f'{sensor.name!r} has {sensor.height} beams; is this the '
+                    'right sensor spec?')
+  order = np.argsort(inverse, kind='stable')
+  bounds = np.searchsorted(inverse[order], np.arange(len(ids) + 1))
+  med = np.array([np.median(elevation[order[bounds[i]:bounds[i + 1]]])
+                  for i in range(len(ids))])
+  top, bottom = _spacing_margins(sensor)
+  on = ((med <= sensor.elevation[0] + 2 * RING_MARGIN_SPACINGS * top) &
+        (med >= sensor.elevation[-1] - 2 * RING_MARGIN_SPACINGS * bottom))
+  row_of = np.full(len(ids), -1, np.int64)
+  idx = np.flatnonzero(on)
+  if len(idx):
+    by_el = idx[np.argsort(-med[idx], kind='stable')]
+    row_of[by_el] = _assign_rows(med[by_el], sensor)
+  return ({int(i): int(r) for i, r in zip(ids, row_of)}, row_of[inverse])
+
+
+def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unfolded:
+  """Unfolds one sweep of any spinning LiDAR into an (H, W) range image.
+
+  Args:
+    points: an (N, >=3) array of x, y, z, or a dict of fields with 'x', 'y',
+      'z' (data.read_points' output; its ring field is not used unless
+      given as ``ring``).
+    sensor: the spec that decides rows, columns and range.
+    ring: optional (N,) beam ids in the driver's own order (any order: top
+      first, bottom first or interleaved): rows come from each ring's median
+      elevation. Without it each point goes to the nearest beam's elevation
+      (with the spec's vertical offsets where it has them).
+    source: names the input (a path) in errors.
+
+  Where two points fall in one pixel the nearer is kept (dual returns, and
+  firings of one kept column). Points at the origin or NaN (placeholders of
+  beams without a return), outside the spec's range, or off its beams are
+  dropped and counted. A sweep whose returns mostly fall outside the spec is
+  refused (DataError naming ``source``, its elevations and the spec's).
+  """
+  if isinstance(points, dict):
+    try:
+      xyz = np.stack([np.asarray(points[k], np.float64) for k in 'xyz'], 1)
+    except KeyError as e:
+      raise DataError(f'{source}: no {e} field among {sorted(points)}') from None
+  else:
+    xyz = np.asarray(points, np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+      raise DataError(f'{source}: expected an (N, >=3) array of points, got '
+                      f'shape {xyz.shape}')
+    xyz = xyz[:, :3]
+  n = len(xyz)
+  if ring is not None:
+    ring = np.asarray(ring)
+    if ring.shape != (n,):
+      raise DataError(f'{source}: {ring.size} ring ids for {n} points')
+  rng = np.sqrt(np.einsum('ij,ij->i', xyz, xyz))
+  returned = np.isfinite(rng) & (rng > 0)
+  if not returned.any():
+    raise DataError(f'{source}: none of its {n} points is a return (all at '
+                    'the origin or NaN)')
+  xyz, rng = xyz[returned], rng[returned]
+  sin_el = xyz[:, 2] / rng
+  in_range = (rng > sensor.min_depth) & (rng < sensor.max_depth)
+  ring_rows = None
+  if ring is not None:
+    ring = ring[returned]
+    if not np.isfinite(ring).all() or (ring != np.round(ring)).any():
+      raise DataError(f'{source}: the ring field holds values that are not '
+                      'integers')
+    ring_rows, row = rows_from_ring_field(ring.astype(np.int64),
+                                          np.arcsin(np.clip(sin_el, -1, 1)),
+                                          sensor, source)
+    inside = row >= 0
+    row = np.maximum(row, 0)
+  else:
+    row, inside = nearest_beam(sin_el, rng, sensor)
+  outside = int((~inside).sum())
+  if 1 - np.mean(inside & in_range) > MIN_INSIDE_SHARE:
+    el = np.rad2deg(np.arcsin(np.clip(sin_el, -1, 1)))
+    lo, hi = np.percentile(el, [1, 99])
+    raise DataError(
+        f'{source}: {np.mean(~inside):.0%} of its returns lie off the beams and '
+        f'{np.mean(~in_range):.0%} outside the range of sensor {sensor.name!r}: '
+        f'its elevations span {lo:.1f} to {hi:.1f} degrees (1st-99th '
+        f'percentile), the spec\'s {sensor.elevation_deg[-1]:.1f} to '
+        f'{sensor.elevation_deg[0]:.1f} degrees, its range '
+        f'({sensor.min_depth}, {sensor.max_depth}) m; is this the right sensor?')
+  azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+  if sensor.azimuth_offset_deg:
+    azimuth = azimuth - sensor.azimuth_offset[row]
+  col, kept = sensor.column_of(azimuth)
+  use = inside & in_range & kept
+  # The nearest return of each pixel: a running minimum per pixel (linear
+  # time; a sort by range costs 100x more for 100k points).
+  h, w = sensor.shape
+  pixel = row[use] * w + col[use]
+  best = np.full(h * w, np.inf)
+  np.minimum.at(best, pixel, rng[use])
+  wins = rng[use] == best[pixel]
+  image = np.zeros((h * w, 3), np.float32)
+  image[pixel[wins]] = xyz[use][wins]
+  seen = np.isfinite(best)
+  depth = np.where(seen, best, 0.0).astype(np.float32).reshape(h, w)
+  placed = int(seen.sum())
+  image = image.reshape(h, w, 3)
+  return Unfolded(
+      depth=depth, xyz=image, points=n, no_return=int(n - returned.sum()),
+      out_of_range=int((inside & ~in_range).sum()), off_elevation=outside,
+      between_columns=int((inside & in_range & ~kept).sum()),
+      hidden=int(use.sum()) - placed, placed=placed, ring_rows=ring_rows)
+
+
+def to_range_image(points, sensor: SensorSpec, ring=None,
+                   source: str = 'points') -> np.ndarray:
+  """(H, W) float32 metric depth of one sweep, 0 where no return, row 0 the
+  top beam and column 0 at the rear (:func:`unfold`, which also says what
+  it dropped)."""
+  return unfold(points, sensor, ring=ring, source=source).depth
 
 
 # ----------------------------------------------------------------------------

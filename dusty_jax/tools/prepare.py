@@ -1,7 +1,14 @@
-"""Turns a KITTI or MPO folder into prepared arrays (see data/arrays.py).
+"""Turns a dataset folder into prepared arrays (see data/arrays.py).
 
     python -m dusty_jax.tools.prepare --dataset kitti --root /data/kitti --out data/kitti
+    python -m dusty_jax.tools.prepare --dataset files --root /data/mine --pattern '*.pcd' \
+        --sensor vlp16 --out data/mine        # or --sensor my_lidar.json, or --sensor auto
 
+``files``: a folder of point files of any spinning LiDAR (KITTI .bin,
+nuScenes .pcd.bin, PCD, PLY, .npy, Ouster .pcap), split by
+ROOT/{train,val,test}.txt where they exist, else 80/10/10 by --split_seed.
+The sensor spec used is written to OUT/sensor.json; train with
+``--config.data.dir=OUT --config.sensor.file=OUT/sensor.json``.
 One unreadable, malformed or far too sparse scan is reported and skipped, with
 a count at the end (data/prepare.py); it never stops the conversion.
 """
@@ -21,11 +28,19 @@ def main(argv=None):
   flags.DEFINE_string('root', None, 'dataset root folder', flag_values=f, required=True)
   flags.DEFINE_string('out', None, 'output folder', flag_values=f, required=True)
   flags.DEFINE_list('splits', list(prepare.SPLITS), 'splits to prepare', flag_values=f)
+  flags.DEFINE_string('sensor', '', 'a sensor preset, a sensor spec JSON file, or auto '
+                      '(estimated from the training files); default the dataset\'s own '
+                      '(kitti, mpo; files needs one)', flag_values=f)
+  flags.DEFINE_string('pattern', '*', 'files: which file names (a glob)', flag_values=f)
+  flags.DEFINE_integer('split_seed', 0, 'files: the seed of the 80/10/10 split',
+                       flag_values=f)
   flags.register_validator(
       'splits', lambda v: set(v) <= set(prepare.SPLITS),
       f'each split is one of {", ".join(prepare.SPLITS)}', flag_values=f)
   tools.parse(f, argv, __doc__)
-  meta = tools.run(prepare.prepare, f.dataset, f.root, f.out, None, tuple(f.splits))
+  meta = tools.run(lambda: prepare.prepare(
+      f.dataset, f.root, f.out, f.sensor or None, tuple(f.splits),
+      pattern=f.pattern, split_seed=f.split_seed))
   skipped = sum(len(v) for v in meta['skipped'].values())
   print(f'done: {meta["splits"]} -> {f.out}; {skipped} files skipped')
 

@@ -14,7 +14,7 @@ import os
 from absl import flags
 
 from dusty_jax import tools
-from dusty_jax.sensor import PRESETS  # (numpy only)
+from dusty_jax.sensor import PRESETS, get_sensor  # (numpy only)
 
 
 def main(argv=None):
@@ -23,7 +23,8 @@ def main(argv=None):
                        required=True)
   flags.DEFINE_string('out', None, 'output folder', flag_values=f, required=True)
   flags.DEFINE_integer('seed', 0, 'scene seed', flag_values=f)
-  flags.DEFINE_enum('sensor', 'kitti', sorted(PRESETS), 'sensor preset', flag_values=f)
+  flags.DEFINE_string('sensor', 'kitti', f'a sensor preset ({", ".join(sorted(PRESETS))}) '
+                      'or a sensor spec JSON file', flag_values=f)
   flags.DEFINE_integer('val', None, 'validation scans (default num // 10)',
                        lower_bound=0, flag_values=f)
   flags.DEFINE_integer('test', None, 'test scans (default num // 10)', lower_bound=0,
@@ -33,9 +34,9 @@ def main(argv=None):
   flags.DEFINE_integer('workers', os.cpu_count() or 1, 'processes', lower_bound=1,
                        flag_values=f)
   tools.parse(f, argv, __doc__)
+  sensor = tools.run(get_sensor, f.sensor)
   # The simulator (and JAX) load once the flags are good: --help answers at once.
   from dusty_jax.data import synthetic
-  sensor = PRESETS[f.sensor]
   small = max(f.num // 10, 1)
   splits = {'train': f.num, 'val': small if f.val is None else f.val,
             'test': small if f.test is None else f.test}
