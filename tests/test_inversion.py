@@ -578,7 +578,8 @@ def test_traced_step_count_follows_the_old_static_search(num_steps):
 
 def test_a_new_step_count_or_start_compiles_no_new_search(gen):
   """The search program is compiled once per shape, whatever num_steps and
-  init are (issue 36: each used to compile again, 50-100 s on a CPU)."""
+  init are: a new count or start must not cost a compilation (50-100 s of a
+  CPU's time when each compiled again)."""
   scans, _ = _targets(gen, n=2)
   inversion.invert(gen, scans, num_steps=3)
   size = inversion._search._cache_size()
