@@ -1,4 +1,5 @@
-"""MetricWriter: metrics.jsonl and the TensorBoard event file hold what was written."""
+"""MetricWriter: metrics.jsonl and the TensorBoard event file hold what was
+written; the pictures label every panel and colour bar."""
 
 import errno
 import json
@@ -7,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from dusty_jax import writers
+from dusty_jax import codec, writers
 from event_files import read_events, scalars
 
 
@@ -97,3 +98,72 @@ def test_a_full_disk_names_the_file_and_closing_releases_both(tmp_path):
     w.write(1, {'loss': 1.0})
   w.close(quiet=True)
   assert w.jsonl.closed
+
+
+def _depth_and_probability(rows=2):
+  from dusty_jax import get_sensor
+  sensor = get_sensor('kitti')
+  h, w = sensor.shape
+  rng = np.random.default_rng(0)
+  depth = [rng.uniform(-0.9, 1.0, (h, w)).astype(np.float32) for _ in range(rows)]
+  depth[0][3, :7] = -1.0  # drops
+  depth[0][4, 0] = np.nan
+  prob = [rng.uniform(0, 1, (h, w)) for _ in range(rows)]
+  return sensor, depth, prob
+
+
+def test_scan_figure_titles_every_panel_and_labels_every_colour_bar():
+  sensor, depth, prob = _depth_and_probability()
+  fig = writers.scan_figure(
+      [writers.Column('target scan', writers.DEPTH, depth),
+       writers.Column('measurability', writers.PROBABILITY, prob, 'probability of a return')],
+      sensor, row_label='test scan')
+  assert writers.figure_labels(fig) == {
+      'panels': ['target scan (test scan 1)', 'measurability (test scan 1)',
+                 'target scan (test scan 2)', 'measurability (test scan 2)'],
+      'colour bars': ['range (m); black: no return', 'probability of a return']}
+  panels = [a for a in fig.axes if a.get_label() != '<colorbar>']
+  # Drops and NaN are masked (drawn black); nothing else is.
+  shown = panels[0].images[0].get_array()
+  np.testing.assert_array_equal(np.ma.getmaskarray(shown), ~(depth[0] > -1.0))
+  assert panels[1].images[0].get_clim() == (0.0, 1.0)
+  # The depth bar's ticks sit where the codec puts the ranges they name.
+  bar = [a for a in fig.axes if a.get_label() == '<colorbar>'][0]
+  ticks = bar.get_xticks()
+  metres = [float(t.get_text()) for t in bar.get_xticklabels()]
+  assert len(metres) >= 4 and metres == sorted(metres)  # nearer: larger inverse depth
+  decoded, _ = codec.decode(np.asarray(ticks, np.float32), sensor)
+  np.testing.assert_allclose(np.asarray(decoded), metres, rtol=1e-4)
+
+
+def test_one_row_panels_take_the_column_title_and_the_figure_its_own():
+  sensor, depth, _ = _depth_and_probability(rows=1)
+  fig = writers.scan_figure([writers.Column('input scan', writers.DEPTH, depth),
+                             writers.Column('x_tilde', writers.DEPTH, depth)],
+                            sensor, title='scan_0007')
+  assert writers.figure_labels(fig)['panels'] == ['input scan', 'x_tilde']
+  assert fig._suptitle.get_text() == 'scan_0007'
+
+
+def test_scan_figure_refuses_ragged_columns_and_unknown_kinds():
+  sensor, depth, prob = _depth_and_probability()
+  with pytest.raises(ValueError, match='same number of images.*a: 2, b: 1'):
+    writers.scan_figure([writers.Column('a', writers.DEPTH, depth),
+                         writers.Column('b', writers.DEPTH, depth[:1])], sensor)
+  with pytest.raises(ValueError, match="kind 'metres'"):
+    writers.scan_figure([writers.Column('a', 'metres', depth)], sensor)
+
+
+def test_save_figure_writes_the_labels_into_the_png(tmp_path):
+  from PIL import Image
+  sensor, depth, prob = _depth_and_probability()
+  fig = writers.scan_figure([writers.Column('target scan', writers.DEPTH, depth),
+                             writers.Column('drop probability', writers.PROBABILITY, prob)],
+                            sensor)
+  path = tmp_path / 'sub' / 'f.png'
+  writers.save_figure(fig, str(path))
+  assert writers.read_labels(str(path)) == writers.figure_labels(fig)
+  w, h = fig.get_size_inches() * fig.dpi
+  assert Image.open(path).size == (round(w), round(h))
+  Image.new('RGB', (4, 4)).save(tmp_path / 'bare.png')
+  assert writers.read_labels(str(tmp_path / 'bare.png')) == {}
