@@ -191,18 +191,20 @@ def line_plot(path: str, series: dict, xlabel: str, ylabel: str, title: str = ''
 # Labelled figures of range images.
 # ----------------------------------------------------------------------------
 
-DEPTH = 'depth'              # normalised inverse depth; drawn in metres, drops black
+DEPTH = 'depth'              # normalised inverse depth; drawn as range in metres, drops black
 PROBABILITY = 'probability'  # values in [0, 1]
 
 # What each kind's colour bar says, with its units.
-COLOUR_BAR = {DEPTH: 'range (m); black: no return',
+COLOUR_BAR = {DEPTH: 'range (m, log scale); black: no return',
               PROBABILITY: 'probability (0 to 1)'}
 
-# Candidate colour-bar ticks in metres; those inside a sensor's range are kept
-# while they stay apart on the inverse-depth axis.
-_METRE_TICKS = (1, 1.5, 2, 3, 5, 10, 20, 50, 100, 200)
-_TICK_GAP = 0.15  # in normalised inverse depth (the bar spans 2)
-_BAR_INCHES = 0.1  # a colour bar's thickness
+# Colour-bar ticks in metres; those inside a sensor's range are drawn.
+_METRE_TICKS = (1, 2, 5, 10, 20, 50, 100, 200)
+# A figure's sizes, in inches (at 100 dpi): a panel is as wide as its scan's
+# columns at 80 per inch, within these bounds; above each panel room for its
+# title, under each column room for its colour bar.
+_PANEL_WIDTH, _COLUMNS_PER_INCH = (3.2, 8.0), 80
+_TITLE_INCHES, _BAR_INCHES, _BAR_ROOM_INCHES = 0.35, 0.1, 0.75
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,8 +212,8 @@ class Column:
   """One column of a :func:`scan_figure`: a kind of image, one per row.
 
   ``images``: (H, W) arrays, one per row (scan); ``kind``: DEPTH for
-  normalised inverse depth (ALPHA and below drawn black), PROBABILITY for
-  values in [0, 1]; ``label``: the colour bar's text, COLOUR_BAR[kind] by
+  normalised inverse depth (drawn as range in metres, no return black),
+  PROBABILITY for values in [0, 1]; ``label``: the colour bar's text, COLOUR_BAR[kind] by
   default."""
   title: str
   kind: str
@@ -219,17 +221,11 @@ class Column:
   label: str = ''
 
 
-def metre_ticks(sensor) -> tuple[np.ndarray, list[str]]:
-  """Positions (normalised inverse depth) and labels of a depth colour
-  bar's ticks for ``sensor``: round ranges in metres, spread along the bar."""
-  sensor = codec.as_sensor(sensor)
-  inside = [m for m in _METRE_TICKS if sensor.min_depth < m < sensor.max_depth]
-  where = np.asarray(codec.encode(np.asarray(inside, np.float32), sensor))
-  kept = []
-  for m, x in zip(inside, where):  # nearest first: x falls
-    if not kept or kept[-1][1] - x >= _TICK_GAP:
-      kept.append((m, float(x)))
-  return np.array([x for _, x in kept]), [f'{m:g}' for m, _ in kept]
+def range_image(x, sensor) -> np.ma.MaskedArray:
+  """(H, W) normalised inverse depth -> range in metres (the codec's
+  decode), masked where nothing returned (drops, beyond range, NaN)."""
+  depth, valid = codec.decode(np.asarray(x, np.float32), sensor)
+  return np.ma.masked_array(np.asarray(depth), ~np.asarray(valid))
 
 
 def scan_figure(columns: Sequence[Column], sensor, row_label: str = 'scan',
@@ -237,49 +233,52 @@ def scan_figure(columns: Sequence[Column], sensor, row_label: str = 'scan',
   """A matplotlib Figure of range images: one row per scan, one column per
   :class:`Column`, each panel titled '<column title> (<row label> <i>)' (the
   column's title alone for one row), ``title`` above all, and
-  under each column a colour bar with its units (metres for depth, with
-  ``sensor``'s range; probability for probabilities). Pass it to
-  :func:`save_figure`, or read its axes."""
+  under each column a colour bar with its units. Depth is drawn as range in
+  metres on a log scale over ``sensor``'s range (near: red, far: blue; no
+  return: black), probabilities on 0 to 1. Pass it to :func:`save_figure`,
+  or read its axes."""
   # Here: matplotlib's import cost, for commands that draw a picture only.
   # Figure, not pyplot: no global state, no GUI.
-  from matplotlib import colormaps
+  from matplotlib import colormaps, colors
   from matplotlib.figure import Figure
-  rows = len(columns[0].images)
+  rows = len(columns[0].images) if columns else 0
   if not rows or any(len(c.images) != rows for c in columns):
     raise ValueError('scan_figure: every column needs the same number of images (> 0), got '
                      + ', '.join(f'{c.title}: {len(c.images)}' for c in columns))
   h, w = np.shape(columns[0].images[0])
-  panel_w = float(np.clip(w / 80, 3.2, 8.0))  # inches; 256 columns -> 3.2
+  panel_w = float(np.clip(w / _COLUMNS_PER_INCH, *_PANEL_WIDTH))
   panel_h = panel_w * h / w
   fig = Figure(figsize=(panel_w * len(columns) + 0.4,
-                        (panel_h + 0.35) * rows + 0.75 + (0.35 if title else 0)),
+                        (panel_h + _TITLE_INCHES) * rows + _BAR_ROOM_INCHES
+                        + (_TITLE_INCHES if title else 0)),
                dpi=100, layout='constrained')
   axes = np.asarray(fig.subplots(rows, len(columns), squeeze=False))
-  cmap = colormaps['turbo'].with_extremes(bad='black')
-  ticks, tick_labels = metre_ticks(sensor)
+  sensor = codec.as_sensor(sensor)
+  norms = {DEPTH: colors.LogNorm(sensor.min_depth, sensor.max_depth),
+           PROBABILITY: colors.Normalize(0.0, 1.0)}
+  cmaps = {DEPTH: colormaps['turbo_r'].with_extremes(bad='black'),
+           PROBABILITY: colormaps['turbo']}
+  ticks = [m for m in _METRE_TICKS if sensor.min_depth < m < sensor.max_depth]
   for j, col in enumerate(columns):
     if col.kind not in COLOUR_BAR:
       raise ValueError(f'column {col.title!r}: kind {col.kind!r}, expected one of '
                        f'{sorted(COLOUR_BAR)}')
     for i, image in enumerate(col.images):
-      image = np.asarray(image, np.float32)
-      if col.kind == DEPTH:
-        image = np.ma.masked_where(~(image > codec.ALPHA), image)  # drops, NaN: black
-        lo, hi = -1.0, 1.0
-      else:
-        lo, hi = 0.0, 1.0
+      image = (range_image(image, sensor) if col.kind == DEPTH
+               else np.asarray(image, np.float32))
       ax = axes[i, j]
-      shown = ax.imshow(image, cmap=cmap, vmin=lo, vmax=hi, interpolation='nearest',
-                        aspect='auto')
+      shown = ax.imshow(image, cmap=cmaps[col.kind], norm=norms[col.kind],
+                        interpolation='nearest', aspect='auto')
       ax.set_title(f'{col.title} ({row_label} {i + 1})' if rows > 1 else col.title, fontsize=9)
       ax.set_xticks([])
       ax.set_yticks([])
-    column_h = rows * (panel_h + 0.35)  # inches
+    column_h = rows * (panel_h + _TITLE_INCHES)
     bar = fig.colorbar(shown, ax=list(axes[:, j]), location='bottom',
                        fraction=_BAR_INCHES / column_h, aspect=0.8 * panel_w / _BAR_INCHES)
     bar.set_label(col.label or COLOUR_BAR[col.kind], fontsize=8)
     if col.kind == DEPTH:
-      bar.set_ticks(ticks, labels=tick_labels)
+      bar.set_ticks(ticks, labels=[f'{m:g}' for m in ticks])
+      bar.minorticks_off()
     bar.ax.tick_params(labelsize=8)
   if title:
     fig.suptitle(title, fontsize=10)

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from dusty_jax import codec, writers
+from dusty_jax import writers
 from event_files import read_events, scalars
 
 
@@ -121,19 +121,27 @@ def test_scan_figure_titles_every_panel_and_labels_every_colour_bar():
   assert writers.figure_labels(fig) == {
       'panels': ['target scan (test scan 1)', 'measurability (test scan 1)',
                  'target scan (test scan 2)', 'measurability (test scan 2)'],
-      'colour bars': ['range (m); black: no return', 'probability of a return']}
+      'colour bars': [writers.COLOUR_BAR[writers.DEPTH], 'probability of a return']}
+  assert writers.COLOUR_BAR[writers.DEPTH].startswith('range (m')  # its unit
   panels = [a for a in fig.axes if a.get_label() != '<colorbar>']
-  # Drops and NaN are masked (drawn black); nothing else is.
+  # Depth is drawn as range in metres: 1 / inverse depth, the codec's mapping
+  # written out here; drops and NaN are masked (drawn black), nothing else.
   shown = panels[0].images[0].get_array()
-  np.testing.assert_array_equal(np.ma.getmaskarray(shown), ~(depth[0] > -1.0))
+  x = depth[0]
+  lo, hi = 1 / sensor.max_depth, 1 / sensor.min_depth
+  with np.errstate(invalid='ignore'):
+    returned = x > -1.0
+  np.testing.assert_array_equal(np.ma.getmaskarray(shown), ~returned)
+  np.testing.assert_allclose(shown.data[returned], 1 / ((x[returned] + 1) / 2 * (hi - lo) + lo),
+                             rtol=1e-5)
+  assert panels[0].images[0].norm.vmin == sensor.min_depth
+  assert panels[0].images[0].norm.vmax == sensor.max_depth
   assert panels[1].images[0].get_clim() == (0.0, 1.0)
-  # The depth bar's ticks sit where the codec puts the ranges they name.
+  # The depth bar's ticks are round ranges in metres, labelled as such.
   bar = [a for a in fig.axes if a.get_label() == '<colorbar>'][0]
-  ticks = bar.get_xticks()
-  metres = [float(t.get_text()) for t in bar.get_xticklabels()]
-  assert len(metres) >= 4 and metres == sorted(metres)  # nearer: larger inverse depth
-  decoded, _ = codec.decode(np.asarray(ticks, np.float32), sensor)
-  np.testing.assert_allclose(np.asarray(decoded), metres, rtol=1e-4)
+  ticks = list(bar.get_xticks())
+  assert ticks == [1, 2, 5, 10, 20, 50, 100]
+  assert [t.get_text() for t in bar.get_xticklabels()] == [f'{t:g}' for t in ticks]
 
 
 def test_one_row_panels_take_the_column_title_and_the_figure_its_own():
