@@ -355,7 +355,7 @@ def _save_images(path, params, z, key):
   out = jax.device_get(sampling.generate(params, z, key))
   fig = writers.scan_figure(
       [writers.Column('sample scan', writers.DEPTH, out['scan']),
-       writers.Column('x_tilde', writers.DEPTH, out['inv_depth']),
+       writers.Column('complete depth x_tilde', writers.DEPTH, out['inv_depth']),
        writers.Column('measurability', writers.PROBABILITY, out['measurability'],
                       'probability of a return')],
       params.sensor, row_label='sample')

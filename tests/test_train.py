@@ -185,7 +185,7 @@ def test_run_outputs(smoke_run):
   config, workdir, _ = smoke_run
   assert sorted(os.listdir(os.path.join(workdir, 'checkpoints'))) == ['2', '4']
   labels = writers.read_labels(os.path.join(workdir, 'images', 'step_0000004.png'))
-  assert labels['panels'][:3] == ['sample scan (sample 1)', 'x_tilde (sample 1)',
+  assert labels['panels'][:3] == ['sample scan (sample 1)', 'complete depth x_tilde (sample 1)',
                                   'measurability (sample 1)']
   assert len(labels['colour bars']) == 3
   lines = [json.loads(l) for l in open(os.path.join(workdir, 'metrics.jsonl'))]
