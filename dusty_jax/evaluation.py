@@ -267,9 +267,10 @@ def after_training(params: GeneratorParams, data_dir: str, out: str, *,
   is simulated, ``num_invert`` test scans inverted by ``invert_steps`` steps
   and scored against the ground truth, beside the training split's per-ring
   keep-rate table (:func:`restoration`'s ``ground_truth``). Writes
-  ``OUT/final_evaluation.json`` and ``OUT/final_evaluation.png`` (per test
-  scan: the scan, the inverted x_tilde and measurability, and, with ground
-  truth, the true return probability); returns the record."""
+  ``OUT/final_evaluation.json`` and ``OUT/final_evaluation.png`` (a row per
+  test scan, titled panels: the target scan, the inverted x_tilde and
+  measurability, and, with ground truth, the true return probability; colour
+  bars in metres and probability); returns the record."""
   sensor = params.sensor
   test = arrays.load_split(data_dir, 'test', sensor)
   record = {'data': data_dir}
@@ -296,13 +297,18 @@ def after_training(params: GeneratorParams, data_dir: str, out: str, *,
     if 'ground_truth' in rec:
       record['ground_truth'] = {k: v for k, v in rec['ground_truth'].items()
                                 if k != 'reliability'}
-    rows = []
-    for i, (scan, inv_depth, measurability) in enumerate(shown):
-      rows += [[writers.inv_depth_tile(scan)], [writers.inv_depth_tile(inv_depth)],
-               [writers.prob_tile(measurability)]]
+    if shown:  # (picture_scans=0: none)
+      scans, inverted, measurability = zip(*shown)
+      columns = [writers.Column('target scan', writers.DEPTH, scans),
+                 writers.Column('reconstruction x_tilde', writers.DEPTH, inverted),
+                 writers.Column('measurability', writers.PROBABILITY, measurability,
+                                'probability of a return, as inverted')]
       if truth is not None:
-        rows.append([writers.prob_tile(1.0 - truth[1][i])])
-    writers.save_grid(os.path.join(out, AFTER_TRAINING + '.png'), rows, scale=2)
+        columns.append(writers.Column('true return probability', writers.PROBABILITY,
+                                      1.0 - truth[1][:len(shown)],
+                                      "probability of a return, the simulator's"))
+      writers.save_figure(writers.scan_figure(columns, sensor, row_label='test scan'),
+                          os.path.join(out, AFTER_TRAINING + '.png'))
   os.makedirs(out, exist_ok=True)
   with open(os.path.join(out, AFTER_TRAINING + '.json'), 'w') as f:
     json.dump(record, f, indent=2)

@@ -354,14 +354,13 @@ def _check_finite(records, last_checkpoint):
 
 def _save_images(path, params, z, key):
   out = jax.device_get(sampling.generate(params, z, key))
-  tiles = [
-      [writers.inv_depth_tile(x) for x in out['scan']],
-      [writers.inv_depth_tile(x) for x in out['inv_depth']],
-      [writers.prob_tile(p) for p in out['measurability']],
-  ]
-  # One column of (x, x_tilde, measurability) per sample, stacked down.
-  rows = [[t] for triple in zip(*tiles) for t in triple]
-  writers.save_grid(path, rows, scale=2)
+  fig = writers.scan_figure(
+      [writers.Column('sample scan', writers.DEPTH, out['scan']),
+       writers.Column('complete depth x_tilde', writers.DEPTH, out['inv_depth']),
+       writers.Column('measurability', writers.PROBABILITY, out['measurability'],
+                      'probability of a return')],
+      params.sensor, row_label='sample')
+  writers.save_figure(fig, path)
 
 
 def _time_to_save(config, saved_at: float, log_now: bool) -> bool:

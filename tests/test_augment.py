@@ -28,7 +28,7 @@ def test_authors_brightness_and_contrast_ranges():
 
 
 def _authors_translation(x, dy, dx):
-  """The rule from the issue: rows from outside filled with 0, columns
+  """The authors' translation rule: rows from outside filled with 0, columns
   wrapped modulo W - 1 (written independently of augment.py)."""
   b, h, w = x.shape
   y = np.zeros_like(x)

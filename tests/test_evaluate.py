@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-from dusty_jax import codec, metrics
+from dusty_jax import codec, metrics, writers
 from dusty_jax.metrics import chamfer, point_sets, protocol, records
 from conftest import FAST_COMPILE
 
@@ -263,8 +263,9 @@ def test_synthesis_is_the_protocol_subset_over_seeds(tiny):
 def test_after_training_reports_and_draws(smoke_run, tmp_path):
   """The short evaluation a training ends with: Table II on a few test scans,
   and drop placement of inverted test scans beside the per-ring table,
-  equal to evaluation.restoration's on the same scans; one PNG row per
-  tile (scan, x_tilde, measurability, true return probability)."""
+  equal to evaluation.restoration's on the same scans; a picture with a row
+  per scan of titled panels (target, x_tilde, measurability, true return
+  probability) and a colour bar in units under each column."""
   from PIL import Image
   from dusty_jax import evaluation, generator, sensor as sensor_lib
   from dusty_jax.data import arrays, pipeline
@@ -284,6 +285,9 @@ def test_after_training_reports_and_draws(smoke_run, tmp_path):
                                                            nan_ok=True)
   within = rec['ground_truth']['ring_table']['auc_near_within_ring']
   assert within == 0.5 or np.isnan(within)  # a table knows nothing within a ring
-  h, w = params.sensor.shape
-  image = Image.open(tmp_path / 'final_evaluation.png')
-  assert image.size == (2 * w, 2 * (8 * (h + 2) - 2))  # 2 scans x 4 tiles, scale 2
+  labels = writers.read_labels(str(tmp_path / 'final_evaluation.png'))
+  assert labels['panels'] == [f'{t} (test scan {i})' for i in (1, 2) for t in (
+      'target scan', 'reconstruction x_tilde', 'measurability', 'true return probability')]
+  assert labels['colour bars'] == [writers.COLOUR_BAR[writers.DEPTH]] * 2 + [
+      'probability of a return, as inverted', "probability of a return, the simulator's"]
+  assert Image.open(tmp_path / 'final_evaluation.png').size[0] > 1000  # 4 panels wide

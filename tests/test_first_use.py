@@ -1,5 +1,6 @@
-"""A newcomer's first calls (issue 36): the compilation cache, light imports,
-pretrained names where a run directory is taken, and the small errors."""
+"""A newcomer's first calls stay quick and plain: a second process reuses
+the compilation cache, `import dusty_jax` stays light, a pretrained name works
+where a run directory is taken, and a mistake ends in one short error."""
 
 import dataclasses
 import os

@@ -13,7 +13,7 @@ import optax
 import pytest
 
 import dusty_jax
-from dusty_jax import codec, corrupt, inversion, sampling
+from dusty_jax import codec, corrupt, inversion, sampling, writers
 from dusty_jax.codec import ALPHA
 from conftest import FAST_COMPILE
 
@@ -136,6 +136,10 @@ def test_cli_on_files_and_split(smoke_run, tmp_path):
     # (read_scans skips what INVERT_OUTPUTS names, should out be an input.)
     for suffix in (*scan_files.INVERT_OUTPUTS, '_depth.npy', '.ply', '.png'):
       assert (out / f'{stem}{suffix}').is_file(), f'{stem}{suffix}'
+  assert writers.read_labels(str(out / 'b_00001.png')) == {
+      'panels': ['clean scan', 'input scan', 'reconstruction x_tilde', 'measurability',
+                 're-rendered scan'],
+      'colour bars': [writers.COLOUR_BAR[k] for k in ('depth',) * 3 + ('probability', 'depth')]}
   m = json.load(open(out / 'metrics.json'))
   assert len(m['per_scan']) == 3 and 'AbsRel' in r.stdout and 'CD x1e4' in r.stdout
   r = subprocess.run([sys.executable, '-m', 'dusty_jax.tools.invert', '--workdir', workdir,
@@ -578,7 +582,8 @@ def test_traced_step_count_follows_the_old_static_search(num_steps):
 
 def test_a_new_step_count_or_start_compiles_no_new_search(gen):
   """The search program is compiled once per shape, whatever num_steps and
-  init are (issue 36: each used to compile again, 50-100 s on a CPU)."""
+  init are: a new count or start must not cost a compilation (50-100 s of a
+  CPU's time when each compiled again)."""
   scans, _ = _targets(gen, n=2)
   inversion.invert(gen, scans, num_steps=3)
   size = inversion._search._cache_size()

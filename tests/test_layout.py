@@ -306,3 +306,114 @@ def test_every_relative_link_in_the_documents_resolves():
   assert os.path.join(REPO, 'benchmarks', 'README.md') in docs
   bad = {os.path.relpath(p, REPO): links for p in docs if (links := _broken_links(p))}
   assert not bad, f'links to nothing: {bad}'
+
+
+BENCHMARKS = os.path.join(REPO, 'benchmarks')
+MAX_RESULT_FILES, MAX_RESULT_BYTES = 60, 8_000_000
+SOURCES = ('.py', '.sh', '.patch')  # scripts and patches: not results
+
+
+def _result_files(top: str = BENCHMARKS) -> list:
+  """Every result file under ``top``: all files but scripts, patches and
+  README.md (benchmarks/README.md, "What the folder may hold"); caches and
+  hidden folders are not walked."""
+  out = []
+  for d, dirs, files in os.walk(top):
+    dirs[:] = [x for x in dirs if x != '__pycache__' and not x.startswith('.')]
+    out += [os.path.normpath(os.path.join(d, f)) for f in files
+            if not f.endswith(SOURCES) and f != 'README.md' and not f.startswith('.')]
+  return sorted(out)
+
+
+def test_the_result_file_count_sees_what_it_should(tmp_path):
+  for name in ('a.py', 'b.sh', 'c.patch', 'README.md', 'results/d.json', 'results/e.png',
+               'research/x/results/f.jsonl', 'research/x/README.md', '__pycache__/g.pyc',
+               'research/x/results/study.md'):
+    (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / name).write_text('x')
+  assert [os.path.relpath(p, tmp_path) for p in _result_files(str(tmp_path))] == [
+      'research/x/results/f.jsonl', 'research/x/results/study.md', 'results/d.json',
+      'results/e.png']
+
+
+def test_the_benchmark_results_stay_within_60_files_and_8_mb():
+  """The record stays a record: a result a later one replaces leaves the
+  tree (git history holds it) rather than piling up beside it."""
+  files = _result_files()
+  size = sum(os.path.getsize(p) for p in files)
+  assert len(files) >= 20  # the walk finds them
+  assert len(files) <= MAX_RESULT_FILES, (
+      f'{len(files)} result files under benchmarks/ (at most {MAX_RESULT_FILES}): retire what a '
+      'later result replaced')
+  assert size <= MAX_RESULT_BYTES, f'{size / 1e6:.2f} MB of results (at most 8 MB)'
+
+
+def _linked_files(path: str) -> set:
+  """Absolute paths of the files a Markdown file links (links and images,
+  not code spans)."""
+  text = re.sub(r'```.*?```', '', open(path).read(), flags=re.S)
+  text = re.sub(r'`[^`\n]*`', '', text)
+  out = set()
+  for target in re.findall(r'\]\(([^)\s]+)\)', text):
+    file = target.partition('#')[0]
+    if file and not re.match(r'[a-z]+:', target):
+      out.add(os.path.normpath(os.path.join(os.path.dirname(path), file)))
+  return out
+
+
+def test_every_result_file_is_cited_by_a_document():
+  """A result file nobody links is a result nobody reads: link it where its
+  topic lives, or leave it to git history. A report's data (NAME.json beside
+  a linked NAME.md) counts as cited with it."""
+  linked = set().union(*(_linked_files(p) for p in _documents()))
+  assert os.path.normpath(os.path.join(BENCHMARKS, 'results', 'study.md')) in linked
+  uncited = [os.path.relpath(p, REPO) for p in _result_files()
+             if p not in linked
+             and not (p.endswith('.json') and p[:-len('json')] + 'md' in linked)]
+  assert not uncited, f'result files no document links: {uncited}'
+
+
+RESEARCH_README_FIRST_PAGE = 60  # lines
+
+
+def _summary_problems(path: str) -> list:
+  """What keeps a research README from opening with a one-page summary: a
+  'Summary' heading within its first page, the section no longer than a
+  page, and at least one link down to its dated log (a heading of the same
+  file)."""
+  lines = open(path).read().split('\n')
+  page = lines[:RESEARCH_README_FIRST_PAGE]
+  heads = [i for i, l in enumerate(page) if re.match(r'#{1,3} +Summary\b', l, re.I)]
+  if not heads:
+    return [f'no "## Summary" heading in its first {RESEARCH_README_FIRST_PAGE} lines']
+  start = heads[0]
+  end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith('#')), len(lines))
+  problems = []
+  if end - start > RESEARCH_README_FIRST_PAGE:
+    problems.append(f'the summary runs {end - start} lines (a page: '
+                    f'{RESEARCH_README_FIRST_PAGE})')
+  anchors = _anchors(path)
+  links = re.findall(r'\]\(#([^)\s]+)\)', '\n'.join(lines[start:end]))
+  if not any(a in anchors for a in links):
+    problems.append('the summary links to no section of the log below it')
+  return problems
+
+
+def test_the_summary_check_sees_what_is_missing(tmp_path):
+  p = tmp_path / 'README.md'
+  p.write_text('# R\n\n## Log (2026-11-26)\n\ntext\n')
+  assert _summary_problems(str(p)) == ['no "## Summary" heading in its first 60 lines']
+  p.write_text('# R\n\n## Summary\n\n' + 'line\n' * 70 + '## Log (2026-11-26)\n')
+  assert _summary_problems(str(p)) == ['the summary runs 72 lines (a page: 60)',
+                                       'the summary links to no section of the log below it']
+  p.write_text('# R\n\n## Summary\n\nWon: [this](#log-2026-11-26).\n\n## Log (2026-11-26)\n')
+  assert _summary_problems(str(p)) == []
+
+
+def test_every_research_readme_opens_with_a_one_page_summary():
+  readmes = sorted(os.path.join(RESEARCH, d, 'README.md') for d in os.listdir(RESEARCH)
+                   if os.path.isdir(os.path.join(RESEARCH, d)))
+  assert len(readmes) >= 4 and all(os.path.isfile(p) for p in readmes), readmes
+  bad = {os.path.relpath(p, REPO): problems for p in readmes
+         if (problems := _summary_problems(p))}
+  assert not bad, bad

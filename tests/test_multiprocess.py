@@ -1,5 +1,6 @@
 """A run of several processes: it resumes after losing one, the survivor ends
-in one line, and a run directory has one writer (issue 38).
+in one line, and a run directory has one writer (a second training started
+on it refuses in one line and writes nothing).
 
 The 2-process runs are the training command on experiments/smoke.py, each
 process with one CPU device, talking over localhost.

@@ -1,5 +1,5 @@
-"""README.md's example runs as written (issue 36: the README cannot drift
-from the library). The block between ``<!-- example -->`` and
+"""README.md's example runs as written, so the README cannot drift from the
+library. The block between ``<!-- example -->`` and
 ``<!-- /example -->`` is run in a fresh process in a temporary directory,
 with its step counts made small; nothing else of it is changed."""
 
@@ -25,7 +25,9 @@ def example() -> str:
   return found.group(1)
 
 
-def test_the_example_block_is_found_and_does_what_the_issue_asks():
+def test_the_example_block_is_found_and_shows_every_step():
+  """The example loads a shipped model, encodes scans, inverts them from a
+  random start and from the encoder, and saves a picture."""
   code = example()
   for call in ("load_pretrained('sim-dusty1')", 'codec.encode(', "init='encoder'",
                'dusty_jax.invert(params, scans, num_steps=', 'savefig('):

@@ -6,6 +6,7 @@ import os
 import numpy as np
 import pytest
 
+from dusty_jax import writers
 from dusty_jax.data import (arrays, embree, kitti as kitti_io, prepare, scene,
                             simulated_lidar, synthetic)
 
@@ -91,7 +92,11 @@ def test_write_dataset_through_prepare(tiny, tmp_path):
   comp = arrays.load_split(out, 'train', tiny, 'complete')
   prob = arrays.load_split(out, 'train', tiny, 'drop_prob')
   assert comp.shape == prob.shape == obs.shape
-  assert os.path.isfile(os.path.join(out, 'preview.png'))
+  labels = writers.read_labels(os.path.join(out, 'preview.png'))
+  assert labels['panels'][:3] == [f'{t} (training scan 1)' for t in (
+      'observed scan', 'complete depth', 'drop probability')]
+  assert labels['colour bars'] == [writers.COLOUR_BAR[writers.DEPTH]] * 2 + [
+      'probability of a drop']
   # Same scans with one worker (scene seeds do not depend on workers), which
   # the workers wrote into the files themselves (no temporary file is left).
   for want, got in zip(synthetic.simulate(4, tiny, seed=30, progress=False),

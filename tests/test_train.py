@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import configs, drops, parallel, trainer
+from dusty_jax import configs, drops, parallel, trainer, writers
 from conftest import FAST_COMPILE
 from event_files import read_events, scalars
 from train_helpers import run_steps, tiny_config
@@ -184,7 +184,10 @@ def test_resume_is_exact(smoke_run, tmp_path):
 def test_run_outputs(smoke_run):
   config, workdir, _ = smoke_run
   assert sorted(os.listdir(os.path.join(workdir, 'checkpoints'))) == ['2', '4']
-  assert os.path.isfile(os.path.join(workdir, 'images', 'step_0000004.png'))
+  labels = writers.read_labels(os.path.join(workdir, 'images', 'step_0000004.png'))
+  assert labels['panels'][:3] == ['sample scan (sample 1)', 'complete depth x_tilde (sample 1)',
+                                  'measurability (sample 1)']
+  assert len(labels['colour bars']) == 3
   lines = [json.loads(l) for l in open(os.path.join(workdir, 'metrics.jsonl'))]
   assert [l['step'] for l in lines] == [1, 2, 4]  # the first step, then log_every
   assert all(np.isfinite(l['loss_d']) and l['images_per_sec'] > 0 for l in lines)
@@ -473,7 +476,13 @@ def test_a_training_ends_with_its_short_evaluation(smoke_run):
   from dusty_jax import evaluation
   _, workdir, _ = smoke_run
   record = json.load(open(os.path.join(workdir, 'final_evaluation.json')))
-  assert os.path.isfile(os.path.join(workdir, 'final_evaluation.png'))
+  # Its picture: titled panels of target, reconstruction, measurability and
+  # the simulator's return probability per scan, colour bars in units.
+  labels = writers.read_labels(os.path.join(workdir, 'final_evaluation.png'))
+  assert labels['panels'][:4] == [f'{t} (test scan 1)' for t in (
+      'target scan', 'reconstruction x_tilde', 'measurability', 'true return probability')]
+  assert labels['colour bars'][0] == writers.COLOUR_BAR[writers.DEPTH]
+  assert all('probability' in l for l in labels['colour bars'][2:])
   assert record['synthesis']['num'] == 4 and record['restoration']['num'] == 2
   assert record['ground_truth']['ring_table']['ece'] >= 0
   text = evaluation.summary(record)

@@ -1,4 +1,5 @@
-"""MetricWriter: metrics.jsonl and the TensorBoard event file hold what was written."""
+"""MetricWriter: metrics.jsonl and the TensorBoard event file hold what was
+written; the pictures label every panel and colour bar."""
 
 import errno
 import json
@@ -97,3 +98,80 @@ def test_a_full_disk_names_the_file_and_closing_releases_both(tmp_path):
     w.write(1, {'loss': 1.0})
   w.close(quiet=True)
   assert w.jsonl.closed
+
+
+def _depth_and_probability(rows=2):
+  from dusty_jax import get_sensor
+  sensor = get_sensor('kitti')
+  h, w = sensor.shape
+  rng = np.random.default_rng(0)
+  depth = [rng.uniform(-0.9, 1.0, (h, w)).astype(np.float32) for _ in range(rows)]
+  depth[0][3, :7] = -1.0  # drops
+  depth[0][4, 0] = np.nan
+  prob = [rng.uniform(0, 1, (h, w)) for _ in range(rows)]
+  return sensor, depth, prob
+
+
+def test_scan_figure_titles_every_panel_and_labels_every_colour_bar():
+  sensor, depth, prob = _depth_and_probability()
+  fig = writers.scan_figure(
+      [writers.Column('target scan', writers.DEPTH, depth),
+       writers.Column('measurability', writers.PROBABILITY, prob, 'probability of a return')],
+      sensor, row_label='test scan')
+  assert writers.figure_labels(fig) == {
+      'panels': ['target scan (test scan 1)', 'measurability (test scan 1)',
+                 'target scan (test scan 2)', 'measurability (test scan 2)'],
+      'colour bars': [writers.COLOUR_BAR[writers.DEPTH], 'probability of a return']}
+  assert writers.COLOUR_BAR[writers.DEPTH].startswith('range (m')  # its unit
+  panels = [a for a in fig.axes if a.get_label() != '<colorbar>']
+  # Depth is drawn as range in metres: 1 / inverse depth, the codec's mapping
+  # written out here; drops and NaN are masked (drawn black), nothing else.
+  shown = panels[0].images[0].get_array()
+  x = depth[0]
+  lo, hi = 1 / sensor.max_depth, 1 / sensor.min_depth
+  with np.errstate(invalid='ignore'):
+    returned = x > -1.0
+  np.testing.assert_array_equal(np.ma.getmaskarray(shown), ~returned)
+  np.testing.assert_allclose(shown.data[returned], 1 / ((x[returned] + 1) / 2 * (hi - lo) + lo),
+                             rtol=1e-5)
+  assert panels[0].images[0].norm.vmin == sensor.min_depth
+  assert panels[0].images[0].norm.vmax == sensor.max_depth
+  assert panels[1].images[0].get_clim() == (0.0, 1.0)
+  # The depth bar's ticks are round ranges in metres, labelled as such.
+  bar = [a for a in fig.axes if a.get_label() == '<colorbar>'][0]
+  ticks = list(bar.get_xticks())
+  assert ticks == [1, 2, 5, 10, 20, 50, 100]
+  assert [t.get_text() for t in bar.get_xticklabels()] == [f'{t:g}' for t in ticks]
+
+
+def test_one_row_panels_take_the_column_title_and_the_figure_its_own():
+  sensor, depth, _ = _depth_and_probability(rows=1)
+  fig = writers.scan_figure([writers.Column('input scan', writers.DEPTH, depth),
+                             writers.Column('x_tilde', writers.DEPTH, depth)],
+                            sensor, title='scan_0007')
+  assert writers.figure_labels(fig)['panels'] == ['input scan', 'x_tilde']
+  assert fig._suptitle.get_text() == 'scan_0007'
+
+
+def test_scan_figure_refuses_ragged_columns_and_unknown_kinds():
+  sensor, depth, prob = _depth_and_probability()
+  with pytest.raises(ValueError, match='same number of images.*a: 2, b: 1'):
+    writers.scan_figure([writers.Column('a', writers.DEPTH, depth),
+                         writers.Column('b', writers.DEPTH, depth[:1])], sensor)
+  with pytest.raises(ValueError, match="kind 'metres'"):
+    writers.scan_figure([writers.Column('a', 'metres', depth)], sensor)
+
+
+def test_save_figure_writes_the_labels_into_the_png(tmp_path):
+  from PIL import Image
+  sensor, depth, prob = _depth_and_probability()
+  fig = writers.scan_figure([writers.Column('target scan', writers.DEPTH, depth),
+                             writers.Column('drop probability', writers.PROBABILITY, prob)],
+                            sensor)
+  path = tmp_path / 'sub' / 'f.png'
+  writers.save_figure(fig, str(path))
+  assert writers.read_labels(str(path)) == writers.figure_labels(fig)
+  w, h = fig.get_size_inches() * fig.dpi
+  assert Image.open(path).size == (round(w), round(h))
+  Image.new('RGB', (4, 4)).save(tmp_path / 'bare.png')
+  assert writers.read_labels(str(tmp_path / 'bare.png')) == {}

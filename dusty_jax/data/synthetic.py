@@ -166,9 +166,10 @@ def save_preview(path: str, directory: str, sensor: SensorSpec, num: int = 4):
   obs = arrays.load_split(directory, 'train', sensor)[:num]
   comp = arrays.load_split(directory, 'train', sensor, 'complete')[:num]
   prob = arrays.load_split(directory, 'train', sensor, 'drop_prob')[:num]
-  rows = []
-  for o, c, p in zip(obs, comp, prob):
-    rows.append([writers.inv_depth_tile(np.asarray(codec.encode(o, sensor)))])
-    rows.append([writers.inv_depth_tile(np.asarray(codec.encode(c, sensor)))])
-    rows.append([writers.prob_tile(p)])
-  writers.save_grid(path, rows, scale=2)
+  fig = writers.scan_figure(
+      [writers.Column('observed scan', writers.DEPTH, np.asarray(codec.encode(obs, sensor))),
+       writers.Column('complete depth', writers.DEPTH, np.asarray(codec.encode(comp, sensor))),
+       writers.Column('drop probability', writers.PROBABILITY, prob,
+                      'probability of a drop')],
+      sensor, row_label='training scan')
+  writers.save_figure(fig, path)

@@ -86,7 +86,7 @@ def _corruption(spec: str) -> bool:
   return True
 
 
-def write_scan(stem: str, clean, target, res):
+def write_scan(stem: str, clean, target, res, sensor):
   """One restored scan's files: x_tilde, measurability, re-rendered depth,
   its points (.ply) and a picture of target, input, x_tilde, measurability
   and the re-rendered scan."""
@@ -97,10 +97,13 @@ def write_scan(stem: str, clean, target, res):
   np.save(stem + '_measurability.npy', res['measurability'])
   np.save(stem + '_depth.npy', res['depth'])
   trimesh.PointCloud(res['points'][res['valid']]).export(stem + '.ply')
-  tile = writers.inv_depth_tile
-  writers.save_grid(stem + '.png', [[tile(clean)], [tile(target)], [tile(res['inv_depth'])],
-                                    [writers.prob_tile(res['measurability'])],
-                                    [tile(res['scan'])]])
+  panels = [('clean scan', writers.DEPTH, clean), ('input scan', writers.DEPTH, target),
+            ('reconstruction x_tilde', writers.DEPTH, res['inv_depth']),
+            ('measurability', writers.PROBABILITY, res['measurability']),
+            ('re-rendered scan', writers.DEPTH, res['scan'])]
+  fig = writers.scan_figure([writers.Column(t, k, [x]) for t, k, x in panels], sensor,
+                            title=os.path.basename(stem))
+  writers.save_figure(fig, stem + '.png')
 
 
 def run(a):
@@ -139,7 +142,7 @@ def run(a):
   def write(start, clean, target, res):
     for i in range(len(clean)):
       write_scan(os.path.join(a.out, names[start + i]), clean[i], target[i],
-                 {k: v[i] for k, v in res.items()})
+                 {k: v[i] for k, v in res.items()}, sensor)
 
   rec = evaluation.restoration(
       params, depth, corruption=a.corrupt, num_steps=a.steps, init=a.init,
