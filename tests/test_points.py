@@ -357,7 +357,8 @@ def test_without_pypcd4_one_line_says_what_to_install(tmp_path, monkeypatch):
 
 
 def test_without_the_ouster_sdk_one_line_says_what_to_install(tmp_path, monkeypatch):
-  monkeypatch.setitem(sys.modules, 'ouster', None)
+  for name in ('ouster', 'ouster.sdk', 'ouster.sdk.core'):  # even if imported before
+    monkeypatch.setitem(sys.modules, name, None)
   pcap = tmp_path / 'x.pcap'
   pcap.write_bytes(b'\0' * 24)
   with pytest.raises(UserError, match=r"x\.pcap: reading an Ouster recording needs ouster-sdk: "
