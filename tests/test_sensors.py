@@ -321,3 +321,23 @@ def test_smoke_training_and_evaluation_on_simulated_scans_of_a_preset(tmp_path, 
   assert 'NaN' not in flat and 'Infinity' not in flat
   saved = configs.load(workdir)  # the run names its sensor without any file
   assert sensor_lib.from_config(saved.sensor) == spec
+
+
+@pytest.mark.parametrize('rings, width', [(16, 256), (32, 1024), (64, 2048), (128, 2048)])
+def test_the_networks_take_16_to_128_rings_and_256_to_2048_columns(rings, width):
+  """Shapes only (jax.eval_shape: traced, not run): the generator makes the
+  sensor's (H, W) and the discriminator one logit per scan."""
+  import jax
+  import jax.numpy as jnp
+  spec = dataclasses.replace(PRESETS['os1-128'], name=f'r{rings}',
+                             elevation_deg=tuple(np.linspace(20, -20, rings)),
+                             width=width, native_width=2048)
+  settings = models.ModelSettings(model='dusty1', latent_dim=16, ch_base=4, ch_max=16)
+  g, d = settings.generator(spec), settings.discriminator(spec)
+  z = jax.ShapeDtypeStruct((2, 16), jnp.float32)
+  g_vars = jax.eval_shape(lambda z: g.init(jax.random.key(0), z), z)
+  out = jax.eval_shape(lambda v, z: g.apply(v, z), g_vars, z)
+  assert out.shape[:3] == (2, rings, width)
+  x = jax.ShapeDtypeStruct((2, rings, width), jnp.float32)
+  d_vars = jax.eval_shape(lambda x: d.init(jax.random.key(0), x), x)
+  assert jax.eval_shape(lambda v, x: d.apply(v, x), d_vars, x).shape == (2,)
