@@ -47,10 +47,9 @@ def _check_shape(path, shape, sensor, lead):
                      f'{sensor.name!r} (expected (..., {want[0]}, {want[1]}))')
 
 
-def npy_layout(path: str):
+def npy_header(path: str):
   """(shape, dtype, fortran_order, offset of the data) of a .npy file, from
-  its header; a file that is none, or one whose data is shorter than its
-  header says (cut short, or being written), is a DataError naming it."""
+  its header; a file that is none is a DataError naming it."""
   try:
     with open(path, 'rb') as f:
       version = np.lib.format.read_magic(f)
@@ -62,6 +61,14 @@ def npy_layout(path: str):
     raise DataError(f'{path}: not a .npy array ({e})') from None
   if dtype.hasobject:
     raise DataError(f'{path}: holds Python objects ({dtype}), not numbers')
+  return tuple(shape), dtype, fortran, offset
+
+
+def npy_layout(path: str):
+  """:func:`npy_header`, and a DataError naming the file and both sizes
+  where its data is shorter than its header says (cut short, or being
+  written)."""
+  shape, dtype, fortran, offset = npy_header(path)
   want = offset + int(np.prod(shape)) * dtype.itemsize
   have = os.path.getsize(path)
   if have < want:
@@ -193,7 +200,8 @@ def check_values(depth, sensor: SensorSpec, path: str, log=print) -> dict:
   on CHECK_SCANS scans spread over it. Returns the shares found."""
   n = len(depth)
   sampled = not isinstance(depth, np.ndarray) and n > CHECK_SCANS
-  scans = depth[np.linspace(0, n - 1, CHECK_SCANS).astype(int)] if sampled else depth
+  scans = (depth if isinstance(depth, np.ndarray) else
+           depth[np.linspace(0, n - 1, CHECK_SCANS).astype(int)] if sampled else depth[:])
   where = f' (of {CHECK_SCANS} of its {n} scans, spread over it)' if sampled else ''
   total = scans.size
   finite = np.isfinite(scans)

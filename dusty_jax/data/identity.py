@@ -59,7 +59,7 @@ def data_sha256(array: np.ndarray) -> str:
 def of_file(path: str, whole: bool = False, data: np.ndarray | None = None) -> dict:
   """The identity of the .npy file ``path``; with ``whole`` its ``sha256``
   too, from ``data`` (the file's array, already read) or by reading it."""
-  shape, dtype, fortran, offset = arrays.npy_layout(path)
+  shape, dtype, fortran, offset = arrays.npy_header(path)  # (a file cut short: its size)
   size, mtime, _, _ = stat_key(path)
   out = {'bytes': size, 'shape': list(shape), 'dtype': dtype.str, 'mtime_ns': mtime,
          'sample': _sample(path, size)}

@@ -115,7 +115,7 @@ class TrainingData:
     self.depth = arrays.read_split(directory, 'train', sensor, memory_mb << 20)
     self.in_memory = isinstance(self.depth, np.ndarray)
     size = os.path.getsize(self.path)
-    log(f'{self.path}: {len(self.depth):,} training scans, {size / 2**20:,.0f} MiB, ' +
+    log(f'{self.path}: {len(self.depth):,} training scans, {size / 2**20:,.1f} MiB, ' +
         ('read into memory' if self.in_memory else
          f'read from the file batch by batch (above data.memory_mb={memory_mb})'))
     arrays.check_values(self.depth, sensor, self.path, log)
@@ -177,8 +177,10 @@ class TrainingData:
       return None
     try:
       now = identity.of_file(self.path, whole='sha256' in self.identity)
-    except (OSError, DataError) as e:
-      return f'no longer readable: {e}'
+    except DataError:
+      return f'{key[0]:,} bytes, no longer a .npy array'
+    except OSError as e:
+      return f'no longer readable ({e.strerror or e})'
     changes = identity.differences(self.identity, now)
     if not changes:
       self._seen = key  # touched, or replaced by the same bytes
