@@ -2,8 +2,10 @@
 
 A prepared dataset is a directory holding, per split, ``{split}.npy``: metric
 depth shaped (N, H, W), float32, 0 where there was no return (training reads
-it into memory, or from the file batch by batch when it is large), plus ``angles.npy`` (2, H, W): the per-pixel elevation and azimuth
-estimated from the training split, and ``meta.json``. Simulated datasets add
+it into memory, or from the file batch by batch when it is large), plus
+``angles.npy`` (2, H, W): the per-pixel elevation and azimuth estimated from
+the training split, and ``meta.json`` (with each split file's identity:
+data/identity.py). Simulated datasets add
 the ground truth beside each split: ``{split}_complete.npy`` (the depth a
 perfect sensor sees) and ``{split}_drop_prob.npy`` (the true probability of
 each point-drop).

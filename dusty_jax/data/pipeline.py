@@ -145,7 +145,7 @@ class TrainingData:
     before = record.get('identity')
     if resuming and before:
       changes = identity.differences(before, self.identity)
-      if record.get('file') != self.path:
+      if changes and record.get('file') != self.path:  # (the same bytes moved: the same data)
         changes.insert(0, f"file {record.get('file')} -> {self.path}")
       if changes and not allow_changed:
         raise DataError(
