@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import random_depth, sensor_order_points
-from dusty_jax import trainer
+from dusty_jax import configs, trainer
 from dusty_jax.data import arrays, identity, pipeline, prepare, synthetic
 from dusty_jax.data import kitti as kitti_io
 from dusty_jax.errors import DataError
@@ -117,7 +117,7 @@ def test_a_file_cut_short_under_file_rows_is_an_error_naming_it(tmp_path, tiny):
 
 BAD_VALUES = [
     ('all NaN', lambda d: np.full_like(d, np.nan),
-     r'100\.0% of its pixels are NaN or inf .*at most 1% are taken as drops'),
+     r'100\.0% of its pixels are NaN or inf; at most 1% count as drops: write 0 where'),
     ('all drops', np.zeros_like,
      r'100\.0% of its pixels are drops \(0, NaN or out of range'),
     ('millimetres', lambda d: d * 1000,
@@ -148,6 +148,25 @@ def test_a_few_nan_are_drops_and_counted(tmp_path, tiny):
   assert logs == [f'{path}: 11 NaN or inf pixels (0.027%) taken as drops']
   assert shares['nonfinite'] == 11 / depth.size
   assert shares['valid'] == np.mean((depth > tiny.min_depth) & (depth < tiny.max_depth))
+
+
+def test_a_split_too_big_for_memory_is_checked_on_scans_spread_over_it(tmp_path, tiny,
+                                                                        monkeypatch):
+  path, depth = _prepared(tmp_path, tiny)
+  depth[:, :8] = np.nan  # half the rings of every scan: half the pixels of any sample
+  np.save(path, depth)
+  monkeypatch.setattr(arrays, 'CHECK_SCANS', 8)
+  rows = arrays.read_split(str(tmp_path), 'train', tiny, memory_bytes=0)
+  with pytest.raises(DataError, match=(re.escape(path) + r': 50\.0% of its pixels are NaN or '
+                                       r'inf \(in 8 of its 40 scans, spread over it\); at most 1%')):
+    arrays.check_values(rows, tiny, path, log=lambda m: None)
+
+
+def test_memory_mb_is_checked():
+  config = tiny_config()
+  config.data.memory_mb = -1  # (a float is refused by the field's type on assignment)
+  with pytest.raises(configs.ConfigError, match=r'data\.memory_mb=-1: must be a whole number'):
+    configs.validate(config)
 
 
 def test_a_bad_split_is_refused_before_training_writes_anything(tmp_path, tiny):
@@ -329,6 +348,20 @@ def test_training_data_ignores_a_touch_and_a_copy_of_the_same_bytes(tmp_path, ti
   with pytest.raises(DataError, match=r'changed during training \(removed\); stopped at step 7,'
                                       r' before saving; no checkpoint was saved yet'):
     data.check(7, None)
+
+
+def test_a_split_other_than_meta_json_records_is_named_and_used(tmp_path, tiny):
+  path, depth = _prepared(tmp_path, tiny)
+  arrays.write_meta(str(tmp_path), {'files': {'train': identity.of_file(path, whole=True)}})
+  logs = []
+  pipeline.TrainingData(str(tmp_path), tiny, memory_mb=1, log=logs.append)
+  assert not [l for l in logs if 'meta.json' in l]
+  np.save(path, depth[::-1])  # rewritten in place, not by prepare
+  data = pipeline.TrainingData(str(tmp_path), tiny, memory_mb=1, log=logs.append)
+  assert [l for l in logs if 'meta.json' in l] == [
+      f'warning: {path} is not the file meta.json records (same size, other contents, '
+      f'modified {identity.when(os.stat(path).st_mtime_ns)}); training on it as it is']
+  np.testing.assert_array_equal(data.depth, depth[::-1])
 
 
 def test_a_split_read_from_its_file_cut_short_mid_run_is_one_line_not_a_bus_error(tmp_path):

@@ -204,7 +204,7 @@ def check_values(depth, sensor: SensorSpec, path: str, log=print) -> dict:
   sampled = not isinstance(depth, np.ndarray) and n > CHECK_SCANS
   scans = (depth if isinstance(depth, np.ndarray) else
            depth[np.linspace(0, n - 1, CHECK_SCANS).astype(int)] if sampled else depth[:])
-  where = f' (of {CHECK_SCANS} of its {n} scans, spread over it)' if sampled else ''
+  where = f' (in {CHECK_SCANS} of its {n} scans, spread over it)' if sampled else ''
   total = scans.size
   finite = np.isfinite(scans)
   nonfinite = total - int(np.count_nonzero(finite))
@@ -214,9 +214,9 @@ def check_values(depth, sensor: SensorSpec, path: str, log=print) -> dict:
             'returns': float(np.count_nonzero(returns)) / total}
   if shares['nonfinite'] > MAX_NAN_SHARE:
     raise DataError(
-        f'{path}: {shares["nonfinite"]:.1%} of its pixels are NaN or inf{where} (at most '
-        f'{MAX_NAN_SHARE:.0%} are taken as drops); write 0 where there is no return, as '
-        'prepare does')
+        f'{path}: {shares["nonfinite"]:.1%} of its pixels are NaN or inf{where}; at most '
+        f'{MAX_NAN_SHARE:.0%} count as drops: write 0 where there is no return, as prepare '
+        'does')
   if shares['valid'] < MIN_VALID_SHARE:
     if shares['returns'] < MIN_VALID_SHARE:
       raise DataError(

@@ -98,7 +98,3 @@ def differences(old: dict, new: dict) -> list[str]:
     out.append(f"modified {when(new['mtime_ns'])}")
   return out
 
-
-def describe(ident: dict) -> str:
-  return (f"{tuple(ident['shape'])} {np.dtype(ident['dtype'])}, {ident['bytes']:,} bytes, "
-          f"modified {when(ident['mtime_ns'])}")
