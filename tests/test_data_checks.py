@@ -6,8 +6,6 @@ trained on the changed bytes, the last good checkpoint kept."""
 import json
 import os
 import re
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -15,10 +13,10 @@ import pytest
 
 from conftest import random_depth, sensor_order_points
 from dusty_jax import configs, trainer
-from dusty_jax.data import arrays, identity, pipeline, prepare, synthetic
+from dusty_jax.data import arrays, identity, pipeline, prepare
 from dusty_jax.data import kitti as kitti_io
 from dusty_jax.errors import DataError
-from test_cli import SMOKE, _messages, _training
+from test_cli import _messages, _training
 from train_helpers import tiny_config
 
 SCANS = 40
