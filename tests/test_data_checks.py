@@ -208,7 +208,7 @@ def test_the_simulator_records_its_files_and_a_damaged_cache_is_simulated_again(
   logs = []
   directory = pipeline.dataset_dir(config, tiny, log=logs.append)
   path = arrays.split_path(directory, 'train')
-  recorded = arrays.read_meta(directory)['files']
+  recorded = arrays.read_meta(directory)['identity']
   assert sorted(recorded) == ['test', 'train', 'val']
   assert recorded['train'] == identity.of_file(path, whole=True)
   good = np.load(path)
@@ -234,8 +234,8 @@ def test_prepare_records_each_split_it_leaves(tmp_path, kitti):
                          sensor_order_points(random_depth(kitti, seed=i), kitti))
   out = str(tmp_path / 'out')
   meta = prepare.prepare('kitti', str(root), out, log=lambda m: None)
-  assert sorted(meta['files']) == ['train', 'val']  # no test scan, no test.npy
-  for split, ident in meta['files'].items():
+  assert sorted(meta['identity']) == ['train', 'val']  # no test scan, no test.npy
+  for split, ident in meta['identity'].items():
     assert ident == identity.of_file(arrays.split_path(out, split), whole=True)
     assert ident['shape'] == [meta['splits'][split], 64, 256]
 
@@ -350,7 +350,7 @@ def test_training_data_ignores_a_touch_and_a_copy_of_the_same_bytes(tmp_path, ti
 
 def test_a_split_other_than_meta_json_records_is_named_and_used(tmp_path, tiny):
   path, depth = _prepared(tmp_path, tiny)
-  arrays.write_meta(str(tmp_path), {'files': {'train': identity.of_file(path, whole=True)}})
+  arrays.write_meta(str(tmp_path), {'identity': {'train': identity.of_file(path, whole=True)}})
   logs = []
   pipeline.TrainingData(str(tmp_path), tiny, memory_mb=1, log=logs.append)
   assert not [l for l in logs if 'meta.json' in l]

@@ -5,7 +5,7 @@ An identity is a JSON-ready dict: ``bytes`` (the file's size), ``shape`` and
 of SAMPLE_BLOCKS blocks spread over it; of all of it when small) and, where
 all of the data was read, ``sha256`` (of the data after the header).
 ``prepare`` and the simulator write one per split into meta.json
-(``files``); a training records the one it trains on in its run directory
+(``identity``); a training records the one it trains on in its run directory
 (pipeline.TrainingData) and compares it at each log step and at resume.
 
 Two identities are the same data when size, shape, dtype and the checksums

@@ -84,7 +84,7 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
 def _cache_damage(directory: str) -> str | None:
   """What is wrong with a cached simulated dataset whose meta.json records
   its files (identity.py), or None: it is ours to simulate again."""
-  recorded = arrays.read_meta(directory).get('files', {})
+  recorded = arrays.read_meta(directory).get('identity', {})
   for split, ident in recorded.items():
     path = arrays.split_path(directory, split)
     try:
@@ -123,7 +123,7 @@ class TrainingData:
                                      data=self.depth if self.in_memory else None)
     self._seen = identity.stat_key(self.path)
     self.switched = None  # what changed since the run's last start, if allowed
-    recorded = arrays.read_meta(directory).get('files', {}).get('train')
+    recorded = arrays.read_meta(directory).get('identity', {}).get('train')
     changes = recorded and identity.differences(recorded, self.identity)
     if changes:
       log(f'warning: {self.path} is not the file meta.json records ({", ".join(changes)}); '

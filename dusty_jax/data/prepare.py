@@ -190,7 +190,7 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
   Every input is checked before anything is created. ``meta.json`` then
   describes every split array in ``out``: the ones written now, and those
   of an earlier run that this one leaves (``splits`` a subset), each with
-  its identity (``files``: size, shape, dtype, mtime, checksums;
+  its identity (``identity``: size, shape, dtype, mtime, checksums;
   data/identity.py), which training checks; ``sensor.json`` the spec they
   were unfolded with.
   """
@@ -244,7 +244,7 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
     os.remove(angles)
     log(f'removed the old {angles} (no training scan to estimate it from)')
   # What each split array is, for training to check (identity.py).
-  meta['files'] = {split: identity.of_file(arrays.split_path(out, split), whole=True)
+  meta['identity'] = {split: identity.of_file(arrays.split_path(out, split), whole=True)
                    for split in SPLITS if os.path.isfile(arrays.split_path(out, split))}
   arrays.write_meta(out, meta)
   if not sum(meta['splits'][s] for s in splits):

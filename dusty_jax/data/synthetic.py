@@ -156,7 +156,7 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
           'shape': list(sensor.shape), 'seed': seed,
           'splits': {k: int(v) for k, v in splits.items()},
           # what each observed split is, for training to check (identity.py)
-          'files': {k: identity.of_file(paths[k][0], whole=True) for k in splits}}
+          'identity': {k: identity.of_file(paths[k][0], whole=True) for k in splits}}
   arrays.write_meta(out, meta)
   return meta
 
