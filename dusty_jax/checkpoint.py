@@ -15,6 +15,7 @@ import inspect
 import logging
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -131,16 +132,30 @@ def quiet():
         sys.unraisablehook = _quiet_saved['hook']
 
 
+# The folder of a save in progress: STEP.orbax-checkpoint-tmp[-TIMESTAMP].
+_TMP = re.compile(r'\d+' + re.escape('.orbax-checkpoint-tmp') + r'(-\d+)?')
+
+
 def manager(workdir: str, keep: int = 3, interval: int = 1,
-            keep_every: int = 0, cleanup_tmp: bool = False) -> ocp.CheckpointManager:
+            keep_every: int = 0, cleanup_tmp: bool = False,
+            log=None) -> ocp.CheckpointManager:
   """The run's checkpoint manager: the last ``keep`` steps, and with
   ``keep_every`` also every step that is a multiple of it.
 
   ``cleanup_tmp``: remove the tmp directories of saves cut short (a kill, a
-  lost peer), which would block saving those steps again. Only for a caller
-  that holds the run directory alone (the trainer, parallel.hold_workdir):
-  another's save in progress would be deleted."""
+  crash, a lost peer), which would block saving those steps again, before
+  the manager starts (orbax's own clean-up runs in the background and may
+  not finish), and ``log`` which. Only for a caller that holds the run
+  directory alone (the trainer, parallel.hold_workdir): another's save in
+  progress would be deleted."""
   path = os.path.join(os.path.abspath(workdir), DIRECTORY)
+  if cleanup_tmp and jax.process_index() == 0 and os.path.isdir(path):
+    cut = sorted(n for n in os.listdir(path) if _TMP.fullmatch(n))
+    for name in cut:
+      shutil.rmtree(os.path.join(path, name))
+    if cut and log:
+      log(f"removed {len(cut)} unfinished checkpoint folder{'s' * (len(cut) > 1)} "
+          f"in {path} (a save cut short by an earlier run's end): {', '.join(cut)}")
   opts = ocp.CheckpointManagerOptions(max_to_keep=keep, keep_period=keep_every or None,
                                       save_interval_steps=interval, create=True,
                                       cleanup_tmp_directories=cleanup_tmp)

@@ -13,6 +13,7 @@ import os
 import ml_collections
 
 from dusty_jax import drops as drops_lib, errors, models, sensor as sensor_lib
+from dusty_jax.data import arrays
 
 FILE = 'config.json'  # a run's config, in its directory
 
@@ -37,6 +38,8 @@ def default() -> ml_collections.ConfigDict:
   c.data.num_synthetic = 2000    # simulated training scans (default data)
   c.data.seed = 0
   c.data.cache = ''              # '' = ~/.cache/dusty_jax
+  c.data.memory_mb = arrays.MEMORY_MB  # a training split up to this is read into memory
+  c.data.allow_changed = False   # resume on data other than the run trained on
 
   # Networks (the paper's Table I).
   c.latent_dim = 512
@@ -148,6 +151,9 @@ def validate(c) -> None:
     if not (isinstance(v, int) and v >= (1 if f in ('points', 'invert_steps') else 0)):
       raise ConfigError(f'config field final_eval.{f}={v!r}: must be a whole number >= '
                         f'{1 if f in ("points", "invert_steps") else "0 (0: skipped)"}')
+  if not (isinstance(c.data.memory_mb, int) and c.data.memory_mb >= 0):
+    raise ConfigError(f'config field data.memory_mb={c.data.memory_mb!r}: must be a whole '
+                      'number of MiB >= 0 (0: always read the training split from its file)')
   need(c.lr > 0, 'lr', 'the learning rate must be > 0')
   need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
        else 'beta2', 'Adam betas must lie in [0, 1)')

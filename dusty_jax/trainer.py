@@ -463,7 +463,11 @@ def _train(config, workdir: str, log, watch) -> TrainState:
   setup = make_setup(config, sensor)
 
   data_dir = pipeline.dataset_dir(config, sensor, log=log)
-  depth = arrays.load_split(data_dir, 'train', sensor)
+  data = pipeline.TrainingData(data_dir, sensor, config.data.memory_mb,
+                               log=log if is_main else lambda m: None)
+  data.start_run(workdir, bool(checkpoint.saved_steps(workdir)), config.data.allow_changed,
+                 write=is_main)
+  depth = data.depth
   angles = arrays.load_angles(data_dir, sensor)
   batches = pipeline.Batches(depth, sensor, config.batch_size, config.seed,
                              jax.process_index(), jax.process_count())
@@ -477,7 +481,8 @@ def _train(config, workdir: str, log, watch) -> TrainState:
       tolerance = generator.read_spec(workdir)[2]  # may have been tuned since.
     generator.save_spec(workdir, sensor, setup.settings, angles, tolerance)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints,
-                            keep_every=config.keep_every, cleanup_tmp=True)
+                            keep_every=config.keep_every, cleanup_tmp=True,
+                            log=log if is_main else None)
   root = jax.random.key(config.seed)
   k_init, k_step, k_img = jax.random.split(root, 3)
   state = init_state(setup, k_init, drops.ring_keep_rate(depth, sensor)
@@ -491,6 +496,9 @@ def _train(config, workdir: str, log, watch) -> TrainState:
     log(f'resumed from step {start} in {workdir}')
   step = parallel.data_parallel(step_fn(setup), mesh)
   writer = writers.MetricWriter(workdir, enabled=is_main, resume_step=start)
+  if data.switched:  # allowed by data.allow_changed; data.json says from what
+    log(f'training on from step {start} on changed data ({data.switched})')
+    writer.write(start, {'data_switched': 1.0})
   z_img = jax.random.normal(k_img, (config.num_images, setup.settings.latent_dim))
 
   pending = []  # (step, device metrics) not yet fetched.
@@ -516,6 +524,7 @@ def _train(config, workdir: str, log, watch) -> TrainState:
                    for s, m in pending]
         pending = []
         _check_finite(records, mngr.latest_step())
+        data.check(done, mngr.latest_step(), functools.partial(parallel.all_texts, 'data'))
         now = time.time()
         rate = (done - last_log[1]) * config.batch_size / max(now - last_log[0], 1e-9)
         last_log = (now, done)

@@ -5,11 +5,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
 
 import numpy as np
 
 from dusty_jax import codec, sensor as sensor_lib
-from dusty_jax.data import arrays
+from dusty_jax.data import arrays, identity
+from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
 
 
@@ -60,7 +62,11 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
           'which runs as is.')
     return directory
   directory = synthetic_dir(config, sensor)
-  if not os.path.isfile(os.path.join(directory, arrays.META)):
+  damage = _cache_damage(directory)
+  if damage:
+    log(f'the cached simulated data in {directory} is not what was simulated '
+        f'({damage}); simulating it again')
+  if damage or not os.path.isfile(os.path.join(directory, arrays.META)):
     # Imported here: the simulator's import cost (about 1.5 s), paid only
     # when no cached dataset exists.
     from dusty_jax.data import synthetic
@@ -73,6 +79,128 @@ def dataset_dir(config, sensor: SensorSpec, log=print) -> str:
     synthetic.write_dataset(directory, sensor, n, seed=config.data.seed,
                             workers=workers)
   return directory
+
+
+def _cache_damage(directory: str) -> str | None:
+  """What is wrong with a cached simulated dataset whose meta.json records
+  its files (identity.py), or None: it is ours to simulate again."""
+  recorded = arrays.read_meta(directory).get('identity', {})
+  for split, ident in recorded.items():
+    path = arrays.split_path(directory, split)
+    try:
+      changes = identity.differences(ident, identity.of_file(path))
+    except (OSError, DataError) as e:
+      return f'{os.path.basename(path)}: {e}'
+    if changes:
+      return f"{os.path.basename(path)}: {', '.join(changes)}"
+  return None
+
+
+class TrainingData:
+  """The training split as a run reads it, and what the run knows of it.
+
+  ``depth`` (N, H, W): in memory where the file is at most ``memory_mb``
+  (the log says which), else read from the file batch by batch
+  (arrays.FileRows); checked for bad values (arrays.check_values) before
+  training. Its identity (identity.py) is compared with meta.json's record,
+  kept in the run directory (RUN_FILE) by :meth:`start_run`, which refuses a
+  resume onto other data unless allowed, and compared again by
+  :meth:`check` at each log step.
+  """
+
+  RUN_FILE = 'data.json'
+
+  def __init__(self, directory: str, sensor: SensorSpec, memory_mb: int, log=print):
+    self.path = os.path.abspath(arrays.split_path(directory, 'train'))
+    self.depth = arrays.read_split(directory, 'train', sensor, memory_mb << 20)
+    self.in_memory = isinstance(self.depth, np.ndarray)
+    size = os.path.getsize(self.path)
+    log(f'{self.path}: {len(self.depth):,} training scans, {size / 2**20:,.1f} MiB, ' +
+        ('read into memory' if self.in_memory else
+         f'read from the file batch by batch (above data.memory_mb={memory_mb})'))
+    arrays.check_values(self.depth, sensor, self.path, log)
+    self.identity = identity.of_file(self.path, whole=self.in_memory,
+                                     data=self.depth if self.in_memory else None)
+    self._seen = identity.stat_key(self.path)
+    self.switched = None  # what changed since the run's last start, if allowed
+    recorded = arrays.read_meta(directory).get('identity', {}).get('train')
+    changes = recorded and identity.differences(recorded, self.identity)
+    if changes:
+      log(f'warning: {self.path} is not the file meta.json records ({", ".join(changes)}); '
+          'training on it as it is')
+
+  def start_run(self, workdir: str, resuming: bool, allow_changed: bool, write: bool):
+    """Compares the data with what the run in ``workdir`` trained on (when it
+    ``resuming``) and refuses other data unless ``allow_changed``; then
+    records it there (``write``: the process that writes the run's files).
+    ``self.switched`` says what changed when other data was allowed."""
+    path = os.path.join(workdir, self.RUN_FILE)
+    record = {}
+    if resuming and os.path.isfile(path):
+      with open(path) as f:
+        try:
+          record = json.load(f)
+        except json.JSONDecodeError:
+          record = {}  # cut short by a kill: the run's data is retaken below
+    before = record.get('identity')
+    if resuming and before:
+      changes = identity.differences(before, self.identity)
+      if changes and record.get('file') != self.path:  # (the same bytes moved: the same data)
+        changes.insert(0, f"file {record.get('file')} -> {self.path}")
+      if changes and not allow_changed:
+        raise DataError(
+            f'{workdir} was trained on other data than {self.path} holds now '
+            f'({", ".join(changes)}); restore that data to resume, or rerun with '
+            '--config.data.allow_changed=true to go on training on this data '
+            '(the metrics record the switch)')
+      if changes:
+        self.switched = ', '.join(changes)
+        record.setdefault('switches', []).append(
+            {'time': identity.when(time.time_ns()), 'from': before, 'to': self.identity,
+             'changes': self.switched})
+    if write:
+      record.update(file=self.path, identity=self.identity)
+      tmp = path + '.tmp'
+      with open(tmp, 'w') as f:
+        json.dump(record, f, indent=2)
+      os.replace(tmp, path)
+
+  def changed(self) -> str | None:
+    """What changed in the split's file since the start, or None. One stat
+    when nothing did; the file is read (a sample, or all of it when the run
+    holds it in memory) only when the stat differs."""
+    try:
+      key = identity.stat_key(self.path)
+    except FileNotFoundError:
+      return 'removed'
+    if key == self._seen:
+      return None
+    try:
+      now = identity.of_file(self.path, whole='sha256' in self.identity)
+    except DataError:
+      return f'{key[0]:,} bytes, no longer a .npy array'
+    except OSError as e:
+      return f'no longer readable ({e.strerror or e})'
+    changes = identity.differences(self.identity, now)
+    if not changes:
+      self._seen = key  # touched, or replaced by the same bytes
+      return None
+    return ', '.join(changes)
+
+  def check(self, step: int, last_checkpoint: int | None, agree=lambda text: [text]):
+    """Stops training (a DataError) when the split's file changed; called
+    at each log step and before each checkpoint, so no checkpoint is saved
+    after it. ``agree``: every process's text of one (parallel.all_texts in
+    a run of several), so that all stop together."""
+    texts = agree(self.changed() or '')
+    if not any(texts):
+      return
+    kept = ('no checkpoint was saved yet' if last_checkpoint is None else
+            f'the last checkpoint, step {last_checkpoint}, was trained on the old data')
+    raise DataError(
+        f'{self.path} changed during training ({next(t for t in texts if t)}); stopped '
+        f'at step {step}, before saving; {kept}. Restore the data and rerun to resume, '
+        'or rerun with --config.data.allow_changed=true to go on training on the new data')
 
 
 class Batches:
@@ -94,7 +222,7 @@ class Batches:
 
   def __call__(self, step: int) -> np.ndarray:
     rng = np.random.default_rng((self.seed, step))
-    # Sorted (contiguous reads from a memory-mapped file) before slicing, so
+    # Sorted (contiguous reads from a file: arrays.FileRows) before slicing, so
     # the process slices, in process order, are the single-process batch.
     idx = np.sort(rng.integers(0, len(self.depth), self.global_batch))
     idx = idx[self.offset:self.offset + self.local]

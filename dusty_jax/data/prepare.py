@@ -26,7 +26,7 @@ import numpy as np
 import tqdm
 
 from dusty_jax import codec, sensor as sensor_lib
-from dusty_jax.data import arrays, estimate, kitti, mpo, points, unfolding
+from dusty_jax.data import arrays, estimate, identity, kitti, mpo, points, unfolding
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec, get_sensor
 
@@ -189,8 +189,10 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
 
   Every input is checked before anything is created. ``meta.json`` then
   describes every split array in ``out``: the ones written now, and those
-  of an earlier run that this one leaves (``splits`` a subset);
-  ``sensor.json`` the spec they were unfolded with.
+  of an earlier run that this one leaves (``splits`` a subset), each with
+  its identity (``identity``: size, shape, dtype, mtime, checksums;
+  data/identity.py), which training checks; ``sensor.json`` the spec they
+  were unfolded with.
   """
   if dataset not in READERS:
     raise ValueError(f'unknown dataset {dataset!r}; known: {sorted(READERS)}')
@@ -241,6 +243,9 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
   elif 'train' in splits and os.path.isfile(angles):
     os.remove(angles)
     log(f'removed the old {angles} (no training scan to estimate it from)')
+  # What each split array is, for training to check (identity.py).
+  meta['identity'] = {split: identity.of_file(arrays.split_path(out, split), whole=True)
+                   for split in SPLITS if os.path.isfile(arrays.split_path(out, split))}
   arrays.write_meta(out, meta)
   if not sum(meta['splits'][s] for s in splits):
     raise DataError(f'{root}: every scan file was skipped; nothing prepared '

@@ -18,7 +18,7 @@ import uuid
 import numpy as np
 import tqdm
 
-from dusty_jax.data import arrays, simulated_lidar
+from dusty_jax.data import arrays, identity, simulated_lidar
 from dusty_jax.sensor import SensorSpec
 
 # Scans a worker renders per task: few enough to keep both of two workers busy
@@ -154,7 +154,9 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
   save_preview(os.path.join(out, 'preview.png'), out, sensor)
   meta = {'dataset': 'synthetic', 'sensor': sensor.name,
           'shape': list(sensor.shape), 'seed': seed,
-          'splits': {k: int(v) for k, v in splits.items()}}
+          'splits': {k: int(v) for k, v in splits.items()},
+          # what each observed split is, for training to check (identity.py)
+          'identity': {k: identity.of_file(paths[k][0], whole=True) for k in splits}}
   arrays.write_meta(out, meta)
   return meta
 
