@@ -13,10 +13,30 @@ result for numpy).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
+from dusty_jax import errors
 from dusty_jax.sensor import SensorSpec, get_sensor
 
 ALPHA = -1.0  # the point-drop constant in normalised inverse depth.
+
+
+def check_precision(x, what: str = 'normalised inverse depth'):
+  """``x`` unchanged unless its dtype is float16 or bfloat16: those are
+  refused (errors.InputError) for normalised inverse depth. Rounded to them,
+  a 0.9-120 m code moves returns by up to 1.1 m (float16) or 8.9 m
+  (bfloat16) below 90 m, and turns every return beyond about 118 m
+  (float16) or 106 m (bfloat16) into ALPHA, a drop. Metric depth
+  (:func:`encode`) may come in half precision: it is cast to float32, its
+  own rounding (2**-11 or 2**-8 of the depth) the only error. The dtype is
+  static, so this also runs under jit."""
+  dtype = np.dtype(getattr(x, 'dtype', np.float32))
+  if dtype.name in errors.HALF:
+    raise errors.InputError(
+        f'{what} in {dtype.name}: too coarse for normalised inverse depth, where far '
+        'returns round onto ALPHA (a drop) and depths move by metres; keep scans in '
+        'float32 (codec.encode of metric depth returns float32)')
+  return x
 
 
 def as_sensor(sensor) -> SensorSpec:
@@ -47,6 +67,7 @@ def encode(depth, sensor: SensorSpec):
   """Metric depth (any shape) -> normalised inverse depth in [-1, 1].
 
   Zero, negative, NaN, inf and out-of-range depths become ALPHA, never NaN.
+  Any float dtype is cast to float32 first; the result is float32.
   ``sensor``: a SensorSpec (``params.sensor``) or a preset name ('kitti').
   """
   sensor = as_sensor(sensor)
@@ -67,10 +88,10 @@ def decode(x, sensor: SensorSpec, tolerance: float = 0.0):
   A pixel counts as dropped when ``|x - ALPHA| / 2 <= tolerance`` (the
   paper's relative tolerance beta for the baseline model; 0 for DUSty, where
   only exactly ALPHA is a drop). Dropped pixels get depth 0. NaN counts as
-  dropped.
+  dropped. ``x`` in float16 or bfloat16 is refused (:func:`check_precision`).
   """
   sensor = as_sensor(sensor)
-  x = jnp.asarray(x, jnp.float32)
+  x = jnp.asarray(check_precision(x, 'x'), jnp.float32)
   valid = jnp.isfinite(x) & ((x - ALPHA) / 2.0 > tolerance)
   lo, hi = _inv_bounds(sensor)
   xc = jnp.clip(jnp.where(valid, x, 0.0), -1.0, 1.0)

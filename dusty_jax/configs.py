@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import numbers
 import os
 
 import ml_collections
 
-from dusty_jax import drops as drops_lib, errors, models, sensor as sensor_lib
+from dusty_jax import drops as drops_lib, errors, gumbel, models, sensor as sensor_lib
 from dusty_jax.data import arrays
 
 FILE = 'config.json'  # a run's config, in its directory
@@ -122,6 +124,11 @@ DROPS_OFF = (('rate_weight', 0), ('mask_bias', 0), ('ring_bias', False),
              ('mask_detached', False), ('depth_levels', False))
 
 
+def _finite(v) -> bool:
+  """A real number (not a bool), neither NaN nor inf."""
+  return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def validate(c) -> None:
   """Checks a config before any work; raises ConfigError naming the field
   (the augmentation fields: trainer.check_augment, which owns them).
@@ -139,7 +146,8 @@ def validate(c) -> None:
   for f in ('batch_size', 'num_steps', 'log_every', 'image_every',
             'checkpoint_every', 'keep_checkpoints', 'latent_dim', 'ch_base',
             'ch_max', 'num_images'):
-    need(isinstance(c[f], int) and c[f] >= 1, f, 'must be a whole number >= 1')
+    need(isinstance(c[f], int) and 1 <= c[f] <= errors.INT32_MAX, f,
+         'must be a whole number >= 1 (and <= 2**31 - 1, an int32 once compiled)')
   need(isinstance(c.keep_every, int) and c.keep_every >= 0, 'keep_every',
        'must be a whole number >= 0 (0: keep the last keep_checkpoints only)')
   minutes = c.checkpoint_minutes
@@ -154,15 +162,25 @@ def validate(c) -> None:
   if not (isinstance(c.data.memory_mb, int) and c.data.memory_mb >= 0):
     raise ConfigError(f'config field data.memory_mb={c.data.memory_mb!r}: must be a whole '
                       'number of MiB >= 0 (0: always read the training split from its file)')
-  need(c.lr > 0, 'lr', 'the learning rate must be > 0')
+  need(_finite(c.lr) and c.lr > 0, 'lr', 'the learning rate must be a finite number > 0')
   need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
        else 'beta2', 'Adam betas must lie in [0, 1)')
-  need(c.adam_eps > 0, 'adam_eps', 'must be > 0')
-  need(c.r1_gamma >= 0, 'r1_gamma', 'must be >= 0')
+  need(_finite(c.adam_eps) and c.adam_eps > 0, 'adam_eps', 'must be a finite number > 0')
+  need(_finite(c.r1_gamma) and c.r1_gamma >= 0, 'r1_gamma', 'must be a finite number >= 0')
   need(isinstance(c.r1_every, int) and c.r1_every >= 1, 'r1_every',
        'must be a whole number >= 1 (1: every step)')
-  need(c.tau > 0, 'tau', 'the Gumbel temperature must be > 0')
-  need(c.ema_halflife_kimg >= 0, 'ema_halflife_kimg', 'must be >= 0')
+  lo, hi = gumbel.TAU_RANGE
+  need(_finite(c.tau) and lo <= c.tau <= hi, 'tau', f'the Gumbel temperature must lie in '
+       f'[{lo:g}, {hi:g}]: beyond, its straight-through gradient vanishes or stops '
+       'depending on the logits (gumbel.TAU_RANGE)')
+  # Beyond this half-life a step's weight in the EMA, 1 - 0.5 ** (batch /
+  # half-life), is below float32's resolution near 1 (2**-24): it never moves.
+  frozen = c.batch_size * math.log(2) * 2 ** 24 / 1000
+  need(_finite(c.ema_halflife_kimg) and 0 <= c.ema_halflife_kimg <= frozen,
+       'ema_halflife_kimg', f'must lie in [0, {frozen:.4g}] for batch_size '
+       f'{c.batch_size} (0: the EMA is the generator; longer: float32 leaves it at init)')
+  need(_finite(c.ema_rampup) and c.ema_rampup >= 0, 'ema_rampup',
+       'must be a finite number >= 0 (0: no ramp-up)')
   need(c.impl in IMPLS, 'impl', "must be '' (per backend: matmul on CPU, xla elsewhere), "
        "'matmul' or 'xla'")
   need(c.eqlr in models.EQLR, 'eqlr', f"must be one of {', '.join(map(repr, models.EQLR))}")

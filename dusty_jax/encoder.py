@@ -53,7 +53,7 @@ import optax
 import tqdm
 from flax import traverse_util
 
-from dusty_jax import checkpoint, corrupt, layers, models, parallel, xla_cache
+from dusty_jax import checkpoint, codec, corrupt, errors, layers, models, parallel, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.models import EqualConv, check_shape
 
@@ -70,12 +70,16 @@ def project(z):
   the last axis.
 
   z is first divided by its largest magnitude (the projection does not
-  change), so a norm whose square would underflow float32 still gives a
-  point on the sphere. z = 0, whose nearest point on the sphere could be
-  any, goes to the all-ones point, whose norm is sqrt(d).
+  change), so a norm whose square would underflow or overflow float32 still
+  gives a point on the sphere; it is divided twice by the square root, as
+  XLA divides by multiplying with the reciprocal, which flushes to 0 beyond
+  |z| = 8.5e37. z = 0, whose nearest point on the sphere could be any, goes
+  to the all-ones point, whose norm is sqrt(d). Finite z only: callers
+  check what a user gives (errors.check_finite).
   """
   big = jnp.max(jnp.abs(z))
-  z = jnp.where(big > 0, z / jnp.where(big > 0, big, 1.0), 1.0)
+  root = jnp.sqrt(jnp.where(big > 0, big, 1.0))
+  z = jnp.where(big > 0, z / root / root, 1.0)
   return optax.projections.projection_l2_sphere(z, jnp.sqrt(z.shape[-1]))
 
 
@@ -144,8 +148,13 @@ def check_has_encoder(params, source: str = 'this generator', carry=()):
 
 
 def encode(params, scans, impl: str | None = None):
-  """Latents on the sphere (B, d) of scans (B, H, W): the encoder's answer."""
+  """Latents on the sphere (B, d) of scans (B, H, W): the encoder's answer.
+  As in inversion, NaN and inf pixels count as drops (ALPHA); float16 and
+  bfloat16 scans are refused (codec.check_precision)."""
   check_has_encoder(params)
+  scans = jnp.asarray(codec.check_precision(scans, 'scans'), jnp.float32)
+  if errors.is_concrete(scans):  # traced: the caller cleaned them (inversion)
+    scans = jnp.where(jnp.isfinite(scans), scans, ALPHA)
   xla_cache.enable()
   return _encode(params, scans, impl)
 

@@ -8,6 +8,8 @@ the family too (checkpoint.py imports nothing of ours, so it keeps its own).
 
 from __future__ import annotations
 
+import numpy as np
+
 
 class UserError(Exception):
   """Something a user gave cannot work; the message says what and names it."""
@@ -20,3 +22,46 @@ class DataError(UserError, ValueError):
 class Interrupted(KeyboardInterrupt):
   """Ctrl-C, with what a rerun does: where it stopped and what it resumes
   from. A KeyboardInterrupt, so code that catches that still does."""
+
+
+class InputError(UserError, ValueError):
+  """An array or number passed to a library call that cannot give a right
+  answer: NaN or inf where a finite value is needed, a count beyond int32,
+  a value outside its usable range, half precision where it loses range."""
+
+
+INT32_MAX = 2 ** 31 - 1  # counts are int32 inside the compiled programs
+HALF = ('float16', 'bfloat16')  # too coarse for normalised inverse depth (codec.py)
+
+
+def is_concrete(x) -> bool:
+  """True unless ``x`` is a tracer: checks read values only outside jit."""
+  import jax  # here: errors.py is imported by tools that need no JAX first
+  return not isinstance(x, jax.core.Tracer)
+
+
+def check_finite(x, what: str, hint: str = 'give finite numbers'):
+  """``x`` unchanged; InputError naming ``what``, how many and the first bad
+  value, if a concrete ``x`` holds NaN or inf, or a value beyond float32's
+  range (dusty_jax computes in float32). A tracer passes unread."""
+  if not is_concrete(x):
+    return x
+  a = np.asarray(x)
+  if a.dtype.kind == 'f' or a.dtype.name in HALF:
+    with np.errstate(over='ignore'):  # beyond float32 is what is looked for
+      bad = ~np.isfinite(a.astype(np.float32))
+    if bad.any():
+      first = tuple(int(i) for i in np.argwhere(bad)[0]) if a.ndim else ()
+      raise InputError(f'{what}: {int(bad.sum())} of {a.size} values are NaN, inf or '
+                       f'beyond float32 (the first, {float(a[first])!r}, at index '
+                       f'{first}); {hint}')
+  return x
+
+
+def check_count(n, what: str, low: int = 0, high: int = INT32_MAX) -> int:
+  """``n`` as an int; InputError naming ``what`` unless it is a whole number
+  in [low, high] (high: int32's largest, as counts are int32 when compiled)."""
+  if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not low <= n <= high:
+    limit = ' and <= 2**31 - 1 (int32, as compiled)' if high == INT32_MAX else f' and <= {high}'
+    raise InputError(f'{what}={n!r}: must be a whole number >= {low}{limit}')
+  return int(n)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import encoder as encoder_lib, models, pretrained, sampling, xla_cache
+from dusty_jax import codec, encoder as encoder_lib, errors, models, pretrained, sampling, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.generator import GeneratorParams
 
@@ -176,7 +176,7 @@ def _check_init(params, init, num_scans):
       encoder_lib.check_has_encoder(params, f'generator {params.model!r}',
                                     pretrained.with_encoder())
     return init, None
-  z = jnp.asarray(init, jnp.float32)
+  z = jnp.asarray(errors.check_finite(init, 'init latents'), jnp.float32)
   want = (num_scans, params.latent_dim)
   if z.shape != want:
     raise ValueError(f'init latents of shape {z.shape}: expected {want} (one '
@@ -218,17 +218,20 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
   Args:
     params: a trained generator (see ``load_checkpoint``).
     scan: (H, W) or (B, H, W) normalised inverse depth, ALPHA for drops; NaN
-      and inf count as dropped.
+      and inf count as dropped; float16 and bfloat16 are refused
+      (codec.check_precision).
     mask: optional bool, same shape: the target pixels to fit (overrides the
       mask inferred from ALPHA).
     key: a PRNG key (default key 0), scan i then using ``fold_in(key, i)``;
       or one key per scan.
-    num_steps: optimisation steps (1000 as in the paper); 0 returns the
+    num_steps: optimisation steps (1000 as in the paper; at most 2**31 - 1,
+      an int32 once compiled); 0 returns the
       start itself (with ``init='encoder'``: the encoder's answer alone).
     init: where the search starts: a name in ``STARTS`` (``'random'``, the
       authors' start, drawn from each scan's key; ``'encoder'``, the answer
       of the generator's encoder, see encoder.py), or given latents (B, d)
-      (one per scan, (d,) for a 2-D scan), projected onto the sphere.
+      (one per scan, (d,) for a 2-D scan), projected onto the sphere: any
+      finite scale; NaN or inf is refused (errors.InputError).
     loss: the objective ``loss(x_tilde, target, mask) -> scalar`` of one
       scan (default :func:`objective`, the authors' masked L1); a hashable
       function, as jit keys its compilation on it.
@@ -244,14 +247,14 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     of 0 scans gives results with a leading axis of 0 (as numpy: empty in,
     empty out).
   """
-  if not isinstance(num_steps, (int, np.integer)) or num_steps < 0:
-    raise ValueError(f'num_steps={num_steps!r}: must be a whole number >= 0')
+  num_steps = errors.check_count(num_steps, 'num_steps')
   xla_cache.enable()
   if not isinstance(lr, jax.core.Tracer) and not (
       np.ndim(lr) == 0 and np.isfinite(lr) and lr > 0):
     raise ValueError(f'lr={lr!r}: the learning rate must be a finite number > 0')
   sampling.check_params(params)
-  scan = jnp.asarray(scan, jnp.float32)
+  params = sampling.full_precision(params)
+  scan = jnp.asarray(codec.check_precision(scan, 'scan'), jnp.float32)
   if scan.ndim not in (2, 3):
     raise ValueError(f'scan of shape {scan.shape}: expected (H, W) or (B, H, W)')
   if not isinstance(scan, jax.core.Tracer):
@@ -310,8 +313,7 @@ def render_drops(params: GeneratorParams, scan, *, key=None,
   Returns dict: ``measurability`` (B, H, W), ``masks`` and ``scans``
   (num_samples, B, H, W), and ``inversion`` (the full :func:`invert` result).
   """
-  if not isinstance(num_samples, (int, np.integer)) or num_samples < 0:
-    raise ValueError(f'num_samples={num_samples!r}: must be a whole number >= 0')
+  num_samples = errors.check_count(num_samples, 'num_samples')
   scan = jnp.asarray(scan, jnp.float32)
   key = sampling.as_key(key)
   k_inv, k_mask = jax.random.split(key)

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec
+from dusty_jax import codec, errors
 from dusty_jax.sensor import SensorSpec
 
 EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)  # metres between depth bins
@@ -112,8 +112,9 @@ def _bisect(keep, target, iterations: int):
 def calibrate(params, depth, latents, iterations: int = 40, batch: int = 64):
   """``params`` (a generator.GeneratorParams with a measurability) with drop
   levels fitted to the metric depth scans ``depth`` (N, H, W; the training
-  split; 0 where dropped) and ``latents`` (N, d), their GAN inversions
-  (evaluation.fit_levels makes both).
+  split; 0 where dropped, as is NaN) and ``latents`` (N, d), their GAN
+  inversions (evaluation.fit_levels makes both). Non-finite latents, and
+  scans of which none returns a point, are refused (errors.InputError).
 
   Each scan's cells are those of its inversion's x_tilde, as in scoring a
   measurability against held-out scans. Each cell's offset is set by
@@ -140,6 +141,12 @@ def calibrate(params, depth, latents, iterations: int = 40, batch: int = 64):
   if latents.shape != (len(depth), params.latent_dim):
     raise ValueError(f'calibrate: latents of shape {latents.shape} for {len(depth)} scans; '
                      f'want ({len(depth)}, {params.latent_dim})')
+  errors.check_finite(latents, 'calibrate: latents')
+  if not np.asarray(codec.valid_depth(depth, params.sensor)).any():
+    raise errors.InputError(
+        f'calibrate: none of the {len(depth)} scans has a return inside the sensor\'s '
+        f'range ({params.sensor.min_depth:g}-{params.sensor.max_depth:g} m; all 0, NaN '
+        'or out of range): no keep rate to fit levels to')
   bare = without_levels(params)
   apply = jax.jit(bare.module().apply)
   raw = jnp.concatenate([apply(bare.variables, latents[i:i + batch])

@@ -5,14 +5,23 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from dusty_jax import errors
+
 
 def d_loss(real_logits, fake_logits):
-  """-log D(x_real) - log(1 - D(G(z))), with D = sigmoid of the logits."""
+  """-log D(x_real) - log(1 - D(G(z))), with D = sigmoid of the logits.
+
+  Finite for any finite logits (softplus saturates linearly); concrete
+  logits (outside jit) must be finite (errors.InputError)."""
+  errors.check_finite(real_logits, 'real logits')
+  errors.check_finite(fake_logits, 'fake logits')
   return jax.nn.softplus(-real_logits).mean() + jax.nn.softplus(fake_logits).mean()
 
 
 def g_loss(fake_logits):
-  """Non-saturating generator loss -log D(G(z))."""
+  """Non-saturating generator loss -log D(G(z)); finite logits as
+  :func:`d_loss`."""
+  errors.check_finite(fake_logits, 'fake logits')
   return jax.nn.softplus(-fake_logits).mean()
 
 

@@ -324,8 +324,7 @@ class ModelSettings:
       v = getattr(self, f)
       if not isinstance(v, int) or v < 1:
         raise ValueError(f'{f}={v!r}: must be a whole number >= 1')
-    if not self.tau > 0:
-      raise ValueError(f'tau={self.tau!r}: the Gumbel temperature must be > 0')
+    gumbel.check_tau(self.tau)
 
   @property
   def variant(self) -> Variant:

@@ -6,8 +6,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, models, sensor, xla_cache
+from dusty_jax import codec, errors, models, sensor, xla_cache
 from dusty_jax.generator import GeneratorParams
+
+# The largest latent component generate() takes. Latents are draws of
+# N(0, I) (or points on the sphere of radius sqrt(d) that invert keeps):
+# 1e4 standard deviations is far beyond any of them, and far larger ones
+# overflow float32 inside the network (1e38 makes the whole scan NaN).
+MAX_LATENT = 1e4
 
 
 def decode_scan(params: GeneratorParams, scan):
@@ -29,13 +35,48 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
   a return; all ones for the baseline), ``mask`` (sampled), ``scan`` (x),
   ``depth`` (metres, 0 where dropped), ``valid`` and ``points`` (B, H, W, 3).
   Compiled (jit) once per shape; inside other jitted code it inlines.
+
+  ``z`` must be finite with no component beyond MAX_LATENT (else
+  errors.InputError); any float dtype is cast to float32, as are
+  half-precision ``params`` (:func:`full_precision`).
   """
   if jnp.ndim(z) != 2 or jnp.shape(z)[1] != params.latent_dim:
     raise ValueError(f'z of shape {jnp.shape(z)}: expected latents of shape (B, '
                      f"{params.latent_dim}), {params.latent_dim} being this generator's "
                      'latent_dim')
+  check_latents(z, 'z')
   xla_cache.enable()
-  return _generate(params, z, as_key(key), train, impl)
+  return _generate(full_precision(params), jnp.asarray(z, jnp.float32), as_key(key),
+                   train, impl)
+
+
+def check_latents(z, what: str):
+  """``z`` unchanged if finite and within MAX_LATENT, else errors.InputError
+  naming ``what`` and the value (a tracer passes unread)."""
+  errors.check_finite(z, what)
+  if errors.is_concrete(z) and np.size(z):
+    big = float(np.max(np.abs(np.asarray(z, np.float32))))
+    if big > MAX_LATENT:
+      raise errors.InputError(
+          f'{what}: a component of magnitude {big:.3g}, beyond {MAX_LATENT:g} '
+          '(sampling.MAX_LATENT): latents are draws of N(0, I); the network '
+          'overflows float32 far beyond that')
+  return z
+
+
+def full_precision(params: GeneratorParams) -> GeneratorParams:
+  """``params`` with float16 and bfloat16 arrays (weights, angles, encoder)
+  cast to float32, the precision dusty_jax computes in; unchanged (the same
+  object) when none is. A half-precision generator computes as the float32
+  generator of its rounded weights."""
+  def cast(v):
+    return v.astype(jnp.float32) if jnp.dtype(v.dtype).name in errors.HALF else v
+  leaves = jax.tree.leaves((params.variables, params.angles, params.encoder))
+  if not any(jnp.dtype(v.dtype).name in errors.HALF for v in leaves if hasattr(v, 'dtype')):
+    return params
+  return params.replace(variables=jax.tree.map(cast, params.variables),
+                        angles=cast(params.angles),
+                        encoder=jax.tree.map(cast, params.encoder))
 
 
 @xla_cache.jit(static_argnames=('train', 'impl'),
@@ -77,14 +118,13 @@ def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   Returns the dict of :func:`generate`; ``num=0`` gives its arrays with a
   leading axis of 0 (as numpy, and as ``invert`` of an empty batch).
   """
-  if not isinstance(num, (int, np.integer)) or num < 0:
-    raise ValueError(f'num={num!r}: the number of scans must be a whole number >= 0')
+  num = errors.check_count(num, 'num')
   check_params(params)
   xla_cache.enable()
   key = as_key(key)
   if key.shape != ():
     raise ValueError(f'key: expected one key, got shape {key.shape}')
-  return _sample(params, key, int(num), impl)
+  return _sample(full_precision(params), key, num, impl)
 
 
 @xla_cache.jit(static_argnames=('num', 'impl'),

@@ -337,9 +337,17 @@ def init_run(workdir: str, config, params) -> None:
   mngr.wait_until_finished()
 
 
-def _check_finite(records, last_checkpoint):
+@jax.jit
+def _all_finite(tree):
+  return jnp.all(jnp.stack([jnp.isfinite(v).all() for v in jax.tree.leaves(tree)]))
+
+
+def _check_finite(records, last_checkpoint, ema_params=None):
   """``last_checkpoint``: the newest saved step (None: none yet), all of
-  whose metrics were finite."""
+  whose metrics were finite. ``ema_params``: the EMA generator after the
+  last record's step, checked too (no training metric reads it)."""
+  if ema_params is not None and records and not bool(_all_finite(ema_params)):
+    records = records[:-1] + [(records[-1][0], {**records[-1][1], 'ema_params': np.nan})]
   for s, m in records:
     bad = {k: v for k, v in m.items() if not np.isfinite(v)}
     if bad:
@@ -523,7 +531,7 @@ def _train(config, workdir: str, log, watch) -> TrainState:
         records = [(s, {k: float(v) for k, v in parallel.to_host(m).items()})
                    for s, m in pending]
         pending = []
-        _check_finite(records, mngr.latest_step())
+        _check_finite(records, mngr.latest_step(), state.ema_params)
         data.check(done, mngr.latest_step(), functools.partial(parallel.all_texts, 'data'))
         now = time.time()
         rate = (done - last_log[1]) * config.batch_size / max(now - last_log[0], 1e-9)

@@ -12,9 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from dusty_jax import errors
+
 
 def reliability(pred, truth, bins: int = 10, mask=None):
-  """Returns dict of per-bin 'pred', 'truth', 'count' arrays and 'ece'."""
+  """Returns dict of per-bin 'pred', 'truth', 'count' arrays and 'ece'.
+  Both must be finite probabilities in [0, 1] (errors.InputError);
+  ``mask`` selects the pixels, checked after it."""
   pred = np.asarray(pred, np.float64).ravel()
   truth = np.asarray(truth, np.float64).ravel()
   if pred.shape != truth.shape:
@@ -24,6 +28,11 @@ def reliability(pred, truth, bins: int = 10, mask=None):
     pred, truth = pred[keep], truth[keep]
   if pred.size == 0:
     raise ValueError('calibration needs at least one pixel')
+  for v, what in ((pred, 'predictions'), (truth, 'true probabilities')):
+    errors.check_finite(v, what, 'give probabilities in [0, 1]')
+    if v.min() < 0 or v.max() > 1:
+      raise errors.InputError(f'{what} lie in [{v.min():.4g}, {v.max():.4g}]: '
+                              'probabilities must lie in [0, 1]')
   idx = np.minimum((np.clip(pred, 0, 1) * bins).astype(int), bins - 1)
   count = np.bincount(idx, minlength=bins).astype(np.float64)
   sp = np.bincount(idx, pred, minlength=bins)

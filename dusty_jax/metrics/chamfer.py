@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import tqdm
 
+from dusty_jax import errors
+
 
 @jax.jit
 def chamfer(a, b):
@@ -78,9 +80,9 @@ def pairwise(a, b=None, tile: int = 8, progress: bool = False):
   With ``b`` None, the symmetric matrix of ``a`` against itself, with each
   off-diagonal tile computed once and mirrored.
   """
-  a = np.asarray(a, np.float32)
+  a = np.asarray(errors.check_finite(a, 'clouds a'), np.float32)
   sym = b is None
-  b = a if sym else np.asarray(b, np.float32)
+  b = a if sym else np.asarray(errors.check_finite(b, 'clouds b'), np.float32)
   n, m = len(a), len(b)
   out = np.zeros((n, m), np.float32)
   starts_a = range(0, n, tile)

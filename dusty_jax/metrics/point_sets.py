@@ -31,23 +31,37 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dusty_jax import errors
+
 
 def mmd_cov(d_sr):
   """MMD and COV from the (num_generated, num_reference) Chamfer matrix."""
-  d_sr = np.asarray(d_sr)
+  d_sr = errors.check_finite(np.asarray(d_sr), 'the Chamfer matrix')
   if d_sr.size == 0:
-    raise ValueError('MMD/COV need at least one generated and one reference cloud')
+    raise errors.InputError('MMD/COV need at least one generated and one reference '
+                            f'cloud, got a matrix of shape {d_sr.shape}')
   mmd = float(d_sr.min(axis=0).mean())
   cov = float(len(np.unique(d_sr.argmin(axis=1))) / d_sr.shape[1])
   return mmd, cov
 
 
 def one_nna(d_rr, d_rs, d_ss):
-  """Leave-one-out 1-NN accuracy over R u S (ties: the lowest index wins)."""
-  d_rr, d_rs, d_ss = map(np.asarray, (d_rr, d_rs, d_ss))
+  """Leave-one-out 1-NN accuracy over R u S (ties: the lowest index wins).
+
+  PointFlow's definition, degenerate sets included: identical sets (each
+  cloud with an exact copy in the other set) score 0, every cloud's nearest
+  neighbour being its copy, of the other label; that is the memorisation
+  end, where 50% is two independent samples of one distribution. Sets of
+  one repeated cloud tie everywhere: the lowest index, a reference cloud,
+  is every cloud's neighbour, so R scores right and S wrong: n0 / (n0 + n1).
+  The matrices must be finite (errors.InputError).
+  """
+  d_rr, d_rs, d_ss = (errors.check_finite(np.asarray(d), what) for d, what in
+                      ((d_rr, 'd_rr'), (d_rs, 'd_rs'), (d_ss, 'd_ss')))
   n0, n1 = len(d_rr), len(d_ss)
   if n0 < 1 or n1 < 1 or n0 + n1 < 3:
-    raise ValueError('1-NNA needs both sets non-empty and 3 clouds in all')
+    raise errors.InputError(f'1-NNA needs both sets non-empty and 3 clouds in all, got '
+                            f'{n0} and {n1}')
   full = np.block([[d_rr, d_rs], [d_rs.T, d_ss]]).astype(np.float64)
   np.fill_diagonal(full, np.inf)
   label = np.concatenate([np.ones(n0), np.zeros(n1)])
@@ -105,7 +119,8 @@ def occupancy(clouds, valid=None, resolution: int = JSD_RESOLUTION, scale=0.5):
         else np.asarray(valid, bool).reshape(-1))
   pts = pts[ok]
   sphere, index, shell = _grid(resolution)
-  ijk = np.clip(np.rint((pts + 0.5) * (resolution - 1)), 0, resolution - 1).astype(np.int64)
+  with np.errstate(over='ignore'):  # a point beyond 1e37 goes to inf, then the edge
+    ijk = np.clip(np.rint((pts + 0.5) * (resolution - 1)), 0, resolution - 1).astype(np.int64)
   cell = index[(ijk[:, 0] * resolution + ijk[:, 1]) * resolution + ijk[:, 2]]
   outside = np.flatnonzero(cell < 0)
   shell_pts = jnp.asarray(sphere[shell])
@@ -132,7 +147,8 @@ def jsd_from_counts(p, q, protocol: str = 'reference'):
     raise ValueError(f'unknown protocol {protocol!r}')
   p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
   if p.sum() <= 0 or q.sum() <= 0:
-    raise ValueError('JSD needs at least one point in each set')
+    raise errors.InputError(f'JSD needs at least one point in each set, got {p.sum():g} '
+                            f'and {q.sum():g}')
   p, q = p / p.sum(), q / q.sum()
   if protocol == 'paper':
     e = PAPER_JSD_EPS
@@ -144,6 +160,9 @@ def jsd_from_counts(p, q, protocol: str = 'reference'):
 def jsd(clouds_a, clouds_b, valid_a=None, valid_b=None,
         resolution: int = JSD_RESOLUTION, scale: float = 0.5,
         protocol: str = 'reference'):
-  """Base-2 JSD between the grid occupancies of two sets of clouds."""
+  """Base-2 JSD between the grid occupancies of two sets of clouds (finite:
+  errors.InputError otherwise)."""
+  errors.check_finite(clouds_a, 'clouds_a')
+  errors.check_finite(clouds_b, 'clouds_b')
   return jsd_from_counts(occupancy(clouds_a, valid_a, resolution, scale),
                          occupancy(clouds_b, valid_b, resolution, scale), protocol)

@@ -29,6 +29,7 @@ import dataclasses
 import jax
 import numpy as np
 
+from dusty_jax import codec, errors
 from dusty_jax.metrics import chamfer, clouds, point_sets, swd
 from dusty_jax.metrics.clouds import PROTOCOLS, check_protocol
 from dusty_jax.sensor import SensorSpec, check_angles, tiny_sensor
@@ -93,7 +94,8 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
 
   Args:
     real: (N, H, W) reference scans, normalised inverse depth, ALPHA = -1
-      for drops.
+      for drops; finite, in float32 or float64 (NaN, inf, float16 and
+      bfloat16 are refused: errors.InputError).
     fake: (M, H, W) generated scans, same encoding (M = N for SWD).
     angles: (2, H, W) elevation/azimuth table for back-projection.
     sensor: gives the depth range (default: 0.9-120 m, every preset's).
@@ -112,8 +114,11 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
     dict of floats: jsd, cov, mmd, 1nna, swd.
   """
   check_protocol(protocol)
-  real = np.asarray(real, np.float32)
-  fake = np.asarray(fake, np.float32)
+  num_points = errors.check_count(num_points, 'num_points', low=1)
+  real, fake = (np.asarray(codec.check_precision(x, what), np.float32)
+                for x, what in ((real, 'real scans'), (fake, 'generated scans')))
+  for x, what in ((real, 'real scans'), (fake, 'generated scans')):
+    errors.check_finite(x, what, 'mark drops with ALPHA = -1, as codec.encode does')
   if real.ndim != 3 or fake.ndim != 3 or fake.shape[1:] != real.shape[1:]:
     raise ValueError('compare needs (N, H, W) scans of one shape, got '
                      f'{real.shape} and {fake.shape}')

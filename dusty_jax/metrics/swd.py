@@ -32,6 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dusty_jax import errors
+
 _K1 = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
 
 
@@ -98,9 +100,22 @@ def patches(key, images, per_image: int = 128, size: int = 7, shared: bool = Fal
   return images[img, rows, cols].reshape(b * per_image, size * size)
 
 
-def normalise(desc, ddof: int = 0):
+# A descriptor set whose standard deviation is at most this share of its
+# largest magnitude does not vary: what is left after the mean is taken off
+# is float32 rounding (about 2**-24 of it), not structure.
+FLAT = 2.0 ** -20
+
+
+def normalise(desc, ddof: int = 0, scale=None):
+  """Descriptors less their mean, over their standard deviation (one
+  channel: one mean and std over the set). A set that does not vary (its
+  std at most FLAT of ``scale``, the largest magnitude of the images they
+  come from, by default of the descriptors: constant images) has no scale
+  to divide by (PGGAN's would divide 0 by 0): it normalises to zeros."""
+  scale = jnp.max(jnp.abs(desc)) if scale is None else scale
   desc = desc - desc.mean()
-  return desc / (desc.std(ddof=ddof) + 1e-8)  # one channel: one mean and std.
+  std = desc.std(ddof=ddof)
+  return jnp.where(std > FLAT * scale, desc / (std + 1e-8), 0.0)
 
 
 @functools.partial(jax.jit, static_argnames=('repeats', 'per_repeat', 'paper'))
@@ -130,7 +145,14 @@ def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
   """{'swd_<size>': ..., 'swd_mean': ...} between (B, H, W) image sets.
 
   ``batch``: images per pyramid call (default 256; 128 with the paper's
-  shared patches, the group that shares positions). With
+  shared patches, the group that shares positions).
+
+  Image i of each set takes its patches at the same positions (PGGAN
+  draws them for each set apart), so identical sets score exactly 0 and a
+  comparison's sampling noise is smaller. Images must be finite
+  (errors.InputError). A set of constant images normalises to zeros
+  (:func:`normalise`): SWD compares standardised patches, blind to each
+  set's level and scale, so two constant sets score 0. With
   ``protocol='paper'``, ``paper_parts`` selects which of the authors'
   differences apply (all by default; fewer to measure each one alone):
   'directions' (std-scaled directions and (n-1) standardisation),
@@ -145,10 +167,14 @@ def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
   shifted, shared, dirs = ('pyramid' in parts, 'patches' in parts,
                            'directions' in parts)
   batch = batch or (PAPER_BATCH if shared else 256)
-  images_a, images_b = jnp.asarray(images_a), jnp.asarray(images_b)
+  for x, what in ((images_a, 'images_a'), (images_b, 'images_b')):
+    errors.check_finite(x, what)
+  images_a, images_b = (jnp.asarray(x, jnp.float32) for x in (images_a, images_b))
   if images_a.shape[1:] != images_b.shape[1:] or len(images_a) != len(images_b):
     raise ValueError('SWD needs two sets of the same number and shape of images,'
                      f' got {images_a.shape} and {images_b.shape}')
+  if not len(images_a):
+    raise errors.InputError('SWD needs at least one image in each set, got none')
   levels = num_levels(images_a.shape[1:])
   desc = {0: [[] for _ in range(levels)], 1: [[] for _ in range(levels)]}
   kp, kd = jax.random.split(key)
@@ -156,13 +182,16 @@ def swd(key, images_a, images_b, per_image: int = 128, size: int = 7,
     for i in range(0, len(imgs), batch):
       pyr = laplacian_pyramid(imgs[i:i + batch], levels, shifted)
       for lvl, p in enumerate(pyr):
-        k = jax.random.fold_in(jax.random.fold_in(kp, s * 1_000_003 + i), lvl)
+        k = jax.random.fold_in(jax.random.fold_in(kp, i), lvl)  # one for both sets
         desc[s][lvl].append(patches(k, p, per_image, size, shared))
   result = {}
   ddof = int(dirs)
+  # What rounding leaves of a constant set is judged against its images: a
+  # band-pass level of constant images holds rounding residue only.
+  sa, sb = (jnp.max(jnp.abs(x)) for x in (images_a, images_b))
   for lvl in range(levels):
-    a = normalise(jnp.concatenate(desc[0][lvl]), ddof)
-    b = normalise(jnp.concatenate(desc[1][lvl]), ddof)
+    a = normalise(jnp.concatenate(desc[0][lvl]), ddof, sa)
+    b = normalise(jnp.concatenate(desc[1][lvl]), ddof, sb)
     side = min(images_a.shape[1:]) >> lvl
     result[f'swd_{side}'] = float(sliced_wasserstein(
         jax.random.fold_in(kd, lvl), a, b, repeats, per_repeat, dirs))
