@@ -53,3 +53,20 @@ def run_steps(num_steps=2, devices=None, config=None, drop_rates=None):
                     jax.random.key(1))
   return parallel.to_host({'g': state.g_params, 'd': state.d_params,
                            'ema': state.ema_params})
+
+
+def run_with_metrics(num_steps=3, devices=None, config=None, drop_rates=None):
+  """As :func:`run_steps`, also returning each step's metrics (host floats)
+  and the initial params: (init params, final params, [metrics])."""
+  config = config or tiny_config()
+  sensor = tiny_sensor(config.sensor.height, config.sensor.width)
+  setup = trainer.make_setup(config, sensor)
+  mesh = parallel.data_mesh(devices)
+  step = parallel.data_parallel(trainer.step_fn(setup), mesh)
+  state = parallel.replicate(trainer.init_state(setup, jax.random.key(0)), mesh)
+  host = lambda s: parallel.to_host({'g': s.g_params, 'd': s.d_params, 'ema': s.ema_params})
+  init, records = host(state), []
+  for batch in fixed_batches(config, sensor, num_steps, drop_rates):
+    state, metrics = step(state, parallel.shard_batch(batch, mesh), jax.random.key(1))
+    records.append({k: float(v) for k, v in parallel.to_host(metrics).items()})
+  return init, host(state), records
