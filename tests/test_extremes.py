@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import ml_dtypes
 import numpy as np
 import pytest
+import scipy.ndimage
 
 from dusty_jax import (codec, configs, encoder, errors, generator, gumbel, inversion, levels,
                        losses, sampling, trainer)
@@ -404,16 +405,37 @@ def test_compare_refuses_half_precision_scans(sets, angles, dtype):
     compare(sets.astype(dtype), sets, angles, num_points=16)
 
 
+def test_compare_of_a_scan_without_a_return(sets, angles):
+  """A generated scan of drops only has no cloud to sample: refused, named
+  (reference protocol); the paper's clouds hold drops at the origin, as
+  the authors' do, so it scores there, finite."""
+  fake = sets[::-1].copy()
+  fake[1] = ALPHA
+  with pytest.raises(errors.InputError, match=r'clouds \[1\] have no valid point'):
+    compare(sets, fake, angles, num_points=16)
+  m = compare(sets, fake, angles, num_points=16, protocol='paper')
+  assert all(np.isfinite(v) for v in m.values()), m
+
+
 def test_identical_sets(sets, angles):
   """Issue row: identical sets gave 1-NNA 0 and SWD 0.066, unasserted. By the
-  definitions: JSD 0, MMD 0 (to float32 rounding), COV 1 (each cloud its copy's nearest), 1-NNA
-  0 (each cloud's nearest is its copy, of the other set: the memorisation
-  end, below the ideal 50%), SWD 0 (both sets take their patches at the
-  same positions)."""
+  definitions: JSD 0, MMD 0 (to float32 rounding), COV 1 (each cloud its
+  copy's nearest), 1-NNA 0 (each cloud's nearest is its copy, of the other
+  set: the memorisation end, below the ideal 50%); SWD the sampling floor
+  of PGGAN's estimator (each set draws its own patch positions): above 0,
+  below a real difference, and falling as the patches grow in number."""
   m = compare(sets, sets.copy(), angles, num_points=16)
   mmd = m.pop('mmd')  # float32 rounding of |x|^2 - 2 x.y + |y|^2 for y = x
   assert 0 <= mmd < 1e-8
-  assert m == {'jsd': 0.0, 'cov': 1.0, '1nna': 0.0, 'swd': 0.0}
+  floor = m.pop('swd')
+  assert m == {'jsd': 0.0, 'cov': 1.0, '1nna': 0.0}
+  assert floor == swd.swd(jax.random.key(0), sets, sets.copy())['swd_mean']  # seed 0
+  smooth = scipy.ndimage.gaussian_filter(sets, (0, 2, 2))  # other structure, same size
+  floors = [np.mean([swd.swd(jax.random.key(s), sets, sets, per_image=n)['swd_mean']
+                     for s in range(3)]) for n in (16, 256)]
+  other = np.mean([swd.swd(jax.random.key(s), sets, smooth,
+                           per_image=256)['swd_mean'] for s in range(3)])
+  assert 0 < floors[1] < floors[0] and floors[1] < other / 2, (floors, other)
 
 
 @pytest.mark.parametrize('a,b', [(0.2, 0.2), (0.2, -0.5), (ALPHA, 1.0)])

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec
+from dusty_jax import codec, errors
 from dusty_jax.sensor import SensorSpec
 
 
@@ -164,7 +164,7 @@ def farthest_point_sample(points, valid, k: int, protocol: str = 'reference'):
   else:
     empty = np.flatnonzero(~np.asarray(valid.any(axis=1)))
     if empty.size:
-      raise ValueError(f'clouds {empty[:10].tolist()} have no valid point to '
-                       'sample (every pixel dropped)')
+      raise errors.InputError(f'clouds {empty[:10].tolist()} have no valid point to '
+                              'sample (every pixel dropped)')
   idx = farthest_point_indices(points, valid, k, protocol=protocol)
   return jnp.take_along_axis(points, jnp.asarray(idx)[..., None], axis=1)
