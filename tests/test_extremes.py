@@ -399,6 +399,15 @@ def test_compare_refuses_a_point_count_outside_int32(sets, angles, n):
     compare(sets, sets, angles, num_points=n)
 
 
+@pytest.mark.parametrize('n_real,n_fake', [(0, 0), (1, 1), (2, 3)])
+def test_compare_refuses_empty_single_and_unpaired_sets(sets, angles, n_real, n_fake):
+  """Empty sets raised ZeroDivisionError; one scan each failed in 1-NNA
+  after the Chamfer matrices, unpaired ones in SWD after everything else."""
+  more = np.concatenate([sets, sets])
+  with pytest.raises(errors.InputError, match=f'got {n_real} real and {n_fake} generated'):
+    compare(sets[:n_real], more[:n_fake], angles, num_points=16)
+
+
 @pytest.mark.parametrize('dtype', HALF)
 def test_compare_refuses_half_precision_scans(sets, angles, dtype):
   with pytest.raises(errors.InputError, match=f'real scans in {np.dtype(dtype).name}'):

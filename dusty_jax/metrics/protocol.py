@@ -96,7 +96,8 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
     real: (N, H, W) reference scans, normalised inverse depth, ALPHA = -1
       for drops; finite, in float32 or float64 (NaN, inf, float16 and
       bfloat16 are refused: errors.InputError).
-    fake: (M, H, W) generated scans, same encoding (M = N for SWD).
+    fake: (N, H, W) generated scans, same encoding (as many as ``real``,
+      for SWD; N >= 2, for 1-NNA's 3 clouds).
     angles: (2, H, W) elevation/azimuth table for back-projection.
     sensor: gives the depth range (default: 0.9-120 m, every preset's).
     protocol: 'reference' (published definitions) or 'paper' (the authors'
@@ -122,6 +123,9 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
   if real.ndim != 3 or fake.ndim != 3 or fake.shape[1:] != real.shape[1:]:
     raise ValueError('compare needs (N, H, W) scans of one shape, got '
                      f'{real.shape} and {fake.shape}')
+  if len(real) != len(fake) or len(real) < 2:  # SWD pairs them; 1-NNA needs 3 clouds
+    raise errors.InputError(f'compare needs as many generated scans as real ones, at least '
+                            f'2 of each, got {len(real)} real and {len(fake)} generated')
   if sensor is None:
     sensor = default_sensor(*real.shape[1:])
   angles = np.asarray(angles, np.float32)
