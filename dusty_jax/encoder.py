@@ -150,8 +150,10 @@ def check_has_encoder(params, source: str = 'this generator', carry=()):
 def encode(params, scans, impl: str | None = None):
   """Latents on the sphere (B, d) of scans (B, H, W): the encoder's answer.
   As in inversion, NaN and inf pixels count as drops (ALPHA); float16 and
-  bfloat16 scans are refused (codec.check_precision)."""
+  bfloat16 scans are refused (codec.check_precision); half-precision
+  encoder weights compute in float32."""
   check_has_encoder(params)
+  params = params.replace(encoder=errors.widen_half(params.encoder))
   scans = jnp.asarray(codec.check_precision(scans, 'scans'), jnp.float32)
   if errors.is_concrete(scans):  # traced: the caller cleaned them (inversion)
     scans = jnp.where(jnp.isfinite(scans), scans, ALPHA)

@@ -34,6 +34,18 @@ INT32_MAX = 2 ** 31 - 1  # counts are int32 inside the compiled programs
 HALF = ('float16', 'bfloat16')  # too coarse for normalised inverse depth (codec.py)
 
 
+def widen_half(tree):
+  """``tree`` with its float16 and bfloat16 arrays cast to float32, the
+  precision dusty_jax computes in (the half-precision policy: weights and
+  latents widen, normalised inverse depth is refused, codec.check_precision).
+  The same object when it holds none."""
+  import jax  # here: errors.py is imported by tools that need no JAX first
+  half = lambda v: hasattr(v, 'dtype') and np.dtype(v.dtype).name in HALF
+  if not any(half(v) for v in jax.tree.leaves(tree)):
+    return tree
+  return jax.tree.map(lambda v: v.astype(np.float32) if half(v) else v, tree)
+
+
 def is_concrete(x) -> bool:
   """True unless ``x`` is a tracer: checks read values only outside jit."""
   import jax  # here: errors.py is imported by tools that need no JAX first

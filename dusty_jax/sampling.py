@@ -66,17 +66,14 @@ def check_latents(z, what: str):
 
 def full_precision(params: GeneratorParams) -> GeneratorParams:
   """``params`` with float16 and bfloat16 arrays (weights, angles, encoder)
-  cast to float32, the precision dusty_jax computes in; unchanged (the same
-  object) when none is. A half-precision generator computes as the float32
-  generator of its rounded weights."""
-  def cast(v):
-    return v.astype(jnp.float32) if jnp.dtype(v.dtype).name in errors.HALF else v
-  leaves = jax.tree.leaves((params.variables, params.angles, params.encoder))
-  if not any(jnp.dtype(v.dtype).name in errors.HALF for v in leaves if hasattr(v, 'dtype')):
+  cast to float32 (errors.widen_half); the same object when none is. A
+  half-precision generator computes as the float32 generator of its
+  rounded weights."""
+  arrays = (params.variables, params.angles, params.encoder)
+  wide = errors.widen_half(arrays)
+  if wide is arrays:
     return params
-  return params.replace(variables=jax.tree.map(cast, params.variables),
-                        angles=cast(params.angles),
-                        encoder=jax.tree.map(cast, params.encoder))
+  return params.replace(variables=wide[0], angles=wide[1], encoder=wide[2])
 
 
 @xla_cache.jit(static_argnames=('train', 'impl'),

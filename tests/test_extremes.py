@@ -222,9 +222,15 @@ def test_encode_of_extreme_scans_is_on_the_sphere(gen, scans, fill):
 
 
 @pytest.mark.parametrize('dtype', HALF)
-def test_encode_refuses_half_precision_scans(gen, scans, dtype):
+def test_encode_refuses_half_scans_and_widens_half_weights(gen, scans, dtype):
   with pytest.raises(errors.InputError, match=f'scans in {np.dtype(dtype).name}'):
     encoder.encode(gen, scans.astype(dtype))
+  half = gen.replace(encoder=jax.tree.map(lambda v: v.astype(dtype), gen.encoder))
+  rounded = gen.replace(encoder=jax.tree.map(lambda v: v.astype(dtype).astype(np.float32),
+                                             gen.encoder))
+  got = encoder.encode(half, scans)
+  assert got.dtype == jnp.float32
+  np.testing.assert_array_equal(got, encoder.encode(rounded, scans))
 
 
 @pytest.mark.parametrize('scale', [1e-30, 1e-10, 1.0, 1e10, 1e37, 9e37, F32_MAX])
