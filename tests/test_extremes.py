@@ -21,7 +21,7 @@ import scipy.ndimage
 from dusty_jax import (codec, configs, encoder, errors, generator, gumbel, inversion, levels,
                        losses, sampling, trainer)
 from dusty_jax.codec import ALPHA
-from dusty_jax.metrics import calibration, chamfer, compare, point_sets, swd
+from dusty_jax.metrics import calibration, chamfer, compare, depth, point_sets, swd
 from dusty_jax.models import ModelSettings
 from dusty_jax.sensor import tiny_sensor
 
@@ -524,6 +524,30 @@ def test_point_metrics_of_extreme_clouds():
     point_sets.jsd(c, bad)
   with pytest.raises(errors.InputError, match=r'clouds b: 1 of 144'):
     chamfer.pairwise(c, bad)
+
+
+def test_depth_errors_at_the_ends_of_the_range(kitti):
+  """Predictions of 0 (a drop: eps), the sensor's ends and 1e15 m against
+  targets at the ends: finite, equal to the definitions in float64; NaN
+  inside the mask refused, outside it ignored."""
+  lo, hi = kitti.min_depth, kitti.max_depth
+  target = np.array([[[lo, hi, lo, hi, 10.0]]], np.float32)
+  pred = np.array([[[0.0, lo, hi, 1e15, np.nan]]], np.float32)
+  mask = np.array([[[True, True, True, True, False]]])
+  got = {k: float(v[0]) for k, v in depth.depth_errors(pred, target, mask).items()}
+  p = np.maximum(pred[mask].astype(np.float64), 1e-6)
+  t = target[mask].astype(np.float64)
+  ratio = np.maximum(p / t, t / p)
+  want = {'abs_rel': np.mean(np.abs(p - t) / t), 'sq_rel': np.mean((p - t) ** 2 / t),
+          'rmse': np.sqrt(np.mean((p - t) ** 2)),
+          'rmse_log': np.sqrt(np.mean((np.log(p) - np.log(t)) ** 2)),
+          'delta1': np.mean(ratio < 1.25), 'delta2': np.mean(ratio < 1.25 ** 2),
+          'delta3': np.mean(ratio < 1.25 ** 3), 'count': 4}
+  assert all(np.isfinite(v) for v in got.values())
+  for k, v in want.items():
+    assert got[k] == pytest.approx(v, rel=1e-5), k
+  with pytest.raises(errors.InputError, match='predicted depth inside the mask'):
+    depth.depth_errors(pred, target, np.ones_like(mask))
 
 
 @pytest.mark.parametrize('bad', [math.nan, math.inf, -0.1, 1.5])
