@@ -13,12 +13,7 @@ Command lines: ``python -m dusty_jax.train`` and ``python -m dusty_jax.tools.NAM
 """
 
 import importlib
-import time
 from typing import TYPE_CHECKING
-
-# When the package was first imported: a process whose dusty_jax source
-# changed after this keeps no traced program (xla_cache.source_digest).
-_loaded_at = globals().get('_loaded_at', time.time())  # a reload keeps the first
 
 # Name -> the module that defines it. Loaded on first use (PEP 562), so that
 # ``import dusty_jax`` and a command's --help do not pay for JAX, Flax and

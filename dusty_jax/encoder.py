@@ -53,7 +53,7 @@ import optax
 import tqdm
 from flax import traverse_util
 
-from dusty_jax import checkpoint, codec, corrupt, errors, layers, models, parallel, xla_cache
+from dusty_jax import checkpoint, codec, corrupt, errors, layers, parallel, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.models import EqualConv, check_shape
 
@@ -161,8 +161,7 @@ def encode(params, scans, impl: str | None = None):
   return _encode(params, scans, impl)
 
 
-@xla_cache.jit(static_argnames=('impl',),
-               exportable=lambda params, **_: models.is_builtin(params.model))
+@functools.partial(jax.jit, static_argnames=('impl',))
 def _encode(params, scans, impl):
   return project(module(params, impl).apply(params.encoder, scans))
 

@@ -16,6 +16,7 @@ to its eps), so the search follows the same path.
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import jax
@@ -23,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import codec, encoder as encoder_lib, errors, models, pretrained, sampling, xla_cache
+from dusty_jax import codec, encoder as encoder_lib, errors, pretrained, sampling, xla_cache
 from dusty_jax.codec import ALPHA
 from dusty_jax.generator import GeneratorParams
 
@@ -99,7 +100,6 @@ def encoder_start(params, scans, masks, keys):
 # keys (B,)) to (B, d) latents on the sphere, traced inside invert's jit.
 # invert(init=NAME) looks the name up here; a new start is one more entry.
 STARTS = {'random': random_start, 'encoder': encoder_start}
-_BUILTIN_STARTS = dict(STARTS)  # kept programs are only these (xla_cache.jit)
 
 
 def scan_loss(params, apply, z, target, mask, loss=objective):
@@ -132,9 +132,7 @@ def _search_one(params, apply, target, mask, z, key, num_steps, lr, loss):
   return z, loss_fn(z)
 
 
-@xla_cache.jit(static_argnames=('start',),
-               exportable=lambda params, start, **_: models.is_builtin(params.model) and (
-                   start is None or STARTS.get(start) is _BUILTIN_STARTS.get(start)))
+@functools.partial(jax.jit, static_argnames=('start',))
 def _start(params, scan, mask, key, z0, start):
   """What a search starts from: the target scans (drops at ALPHA), their
   masks, one key per scan and the starting latents (``start`` a name in
@@ -148,9 +146,7 @@ def _start(params, scan, mask, key, z0, start):
   return scans, masks, key, z0
 
 
-@xla_cache.jit(static_argnames=('impl', 'loss'),
-               exportable=lambda params, loss, **_: models.is_builtin(params.model)
-               and loss is objective)
+@functools.partial(jax.jit, static_argnames=('impl', 'loss'))
 def _search(params, scans, masks, z0, keys, num_steps, lr, impl, loss):
   """The searches from ``z0`` and their re-rendered results. ``num_steps``
   and ``lr`` are traced: one compilation serves every step count."""

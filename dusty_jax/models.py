@@ -284,15 +284,6 @@ VARIANTS = {
 }
 
 
-_BUILTIN = dict(VARIANTS)
-
-
-def is_builtin(name: str) -> bool:
-  """Whether the variant of that name is dusty_jax's own (not one a user
-  registered or replaced): xla_cache keeps only their traced programs."""
-  return name in _BUILTIN and VARIANTS.get(name) is _BUILTIN[name]
-
-
 def get_variant(name: str) -> Variant:
   """The model variant of that name; ValueError naming the known ones."""
   try:

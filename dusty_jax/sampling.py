@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, errors, models, sensor, xla_cache
+from dusty_jax import codec, errors, sensor, xla_cache
 from dusty_jax.generator import GeneratorParams
 
 # The largest latent component generate() takes. Latents are draws of
@@ -76,8 +78,7 @@ def full_precision(params: GeneratorParams) -> GeneratorParams:
   return params.replace(variables=wide[0], angles=wide[1], encoder=wide[2])
 
 
-@xla_cache.jit(static_argnames=('train', 'impl'),
-               exportable=lambda params, **_: models.is_builtin(params.model))
+@functools.partial(jax.jit, static_argnames=('train', 'impl'))
 def _generate(params, z, key, train, impl):
   raw = params.module(impl).apply(params.variables, z)
   out = params.variant.compose(raw, key, params.tau, train)
@@ -124,8 +125,7 @@ def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   return _sample(full_precision(params), key, num, impl)
 
 
-@xla_cache.jit(static_argnames=('num', 'impl'),
-               exportable=lambda params, **_: models.is_builtin(params.model))
+@functools.partial(jax.jit, static_argnames=('num', 'impl'))
 def _sample(params, key, num, impl):
   kz, kmask = jax.random.split(key)
   z = jax.random.normal(kz, (num, params.latent_dim))
