@@ -77,13 +77,13 @@ def run(fn, *args):
     with checkpoint.quiet():
       return fn(*args)
   except KeyboardInterrupt as e:
-    if os.environ.get('DUSTY_JAX_TRACEBACK'):
+    if errors.show_traceback():
       raise
     print(str(e) if isinstance(e, errors.Interrupted) else 'interrupted',
           file=sys.stderr, flush=True)
     raise Exit('interrupted', INTERRUPTED) from None
   except own + _STANDARD as e:
-    if os.environ.get('DUSTY_JAX_TRACEBACK'):
+    if errors.show_traceback():
       raise
     # The one line below says it all: writes orbax left running when the
     # disk filled would log their own copies when collected ("Task exception

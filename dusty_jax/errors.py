@@ -8,7 +8,11 @@ the family too (checkpoint.py imports nothing of ours, so it keeps its own).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+
+TRACEBACK_ENV = 'DUSTY_JAX_TRACEBACK'
 
 
 class UserError(Exception):
@@ -77,3 +81,12 @@ def check_count(n, what: str, low: int = 0, high: int = INT32_MAX) -> int:
     limit = ' and <= 2**31 - 1 (int32, as compiled)' if high == INT32_MAX else f' and <= {high}'
     raise InputError(f'{what}={n!r}: must be a whole number >= {low}{limit}')
   return int(n)
+
+
+def show_traceback() -> bool:
+  """Whether the user asked for tracebacks (``DUSTY_JAX_TRACEBACK=1``; empty,
+  ``0``, ``false``, ``no`` or ``off`` do not): every error then ends in its
+  traceback instead of one line, and a process ended for a lost peer dumps
+  the stacks of its threads."""
+  return os.environ.get(TRACEBACK_ENV, '').strip().lower() not in ('', '0', 'false', 'no',
+                                                                  'off')

@@ -37,6 +37,7 @@ AXIS = 'data'
 # Seconds without a sign of life from another process of the run after which
 # a process gives up (train.py's --peer_timeout).
 PEER_TIMEOUT_S = 60
+_run = {'coordinator': None}  # the coordination service's address, once joined
 
 
 def initialize_distributed(coordinator: str | None = None,
@@ -52,6 +53,7 @@ def initialize_distributed(coordinator: str | None = None,
   coordinator = coordinator or os.environ.get('JAX_COORDINATOR_ADDRESS')
   if not coordinator:
     return
+  _run['coordinator'] = coordinator
   jax.distributed.initialize(coordinator_address=coordinator,
                              num_processes=num_processes,
                              process_id=process_id,
@@ -180,13 +182,19 @@ def _namespace(name: str) -> str:
 
 
 def all_texts(name: str, text: str, timeout: float = 3600.0) -> list[str]:
-  """Every process's ``text``, in process order (all must call it)."""
+  """Every process's ``text``, in process order (all must call it). The
+  keys it sets in the coordination service are deleted again once every
+  process has read them (a training calls it at each log step)."""
   if jax.process_count() == 1:
     return [text]
   client, key = _client(), _namespace(name)
-  client.key_value_set(f'{key}/{jax.process_index()}', 'v' + text)
-  return [client.blocking_key_value_get(f'{key}/{p}', int(timeout * 1000))[1:]
-          for p in range(jax.process_count())]
+  mine, ms = f'{key}/{jax.process_index()}', int(timeout * 1000)
+  client.key_value_set(mine, 'v' + text)
+  texts = [client.blocking_key_value_get(f'{key}/{p}', ms)[1:]
+           for p in range(jax.process_count())]
+  client.wait_at_barrier(f'{key}/read', ms)
+  client.key_value_delete(mine)
+  return texts
 
 
 def fail_now(message: str):
@@ -196,7 +204,7 @@ def fail_now(message: str):
   DUSTY_JAX_TRACEBACK=1 the stacks of all threads follow the line."""
   # On a line of its own: a progress bar may hold the current one.
   print(f'\nerror: {message}', file=sys.stderr, flush=True)
-  if os.environ.get('DUSTY_JAX_TRACEBACK'):
+  if errors.show_traceback():
     faulthandler.dump_traceback(all_threads=True)
   sys.stdout.flush()
   os._exit(LOST_EXIT)  # pylint: disable=protected-access
@@ -210,15 +218,22 @@ _GLOO_LOST = re.compile(r'gloo/transport/\S+\] (Read|Write) error .*(Connection 
 def is_peer_loss(e: BaseException) -> bool:
   """Whether an error of a multi-process run is a lost peer: a runtime error
   of a collective (Gloo, NCCL) or of the coordination service that lost a
-  process, or any error that carries Gloo's word for a lost connection (a
-  checkpoint's write reports one in its own words)."""
+  process; the coordination service's address (process 0) refusing or
+  unavailable; or any error that carries Gloo's word for a lost connection
+  (a checkpoint's write reports one in its own words). Another address that
+  is unavailable or refuses (a storage service, a download) is not a peer."""
   if jax.process_count() < 2:
     return False
-  if _GLOO_LOST.search(str(e)):
+  text = str(e)
+  if _GLOO_LOST.search(text):
     return True
-  return isinstance(e, jax.errors.JaxRuntimeError) and any(
-      w in str(e) for w in ('Gloo', 'NCCL', 'Connection reset', 'Connection refused',
-                            'heartbeat', 'UNAVAILABLE', 'coordination service'))
+  if not isinstance(e, jax.errors.JaxRuntimeError):
+    return False
+  if any(w in text for w in ('Gloo', 'NCCL', 'heartbeat', 'coordination service')):
+    return True
+  port = (_run['coordinator'] or '').rpartition(':')[2]
+  refused = re.search(r'UNAVAILABLE|Connection refused|Connection reset', text)
+  return bool(port and refused and re.search(rf':{re.escape(port)}(?!\d)', text))
 
 
 class PeerWatch:
@@ -310,9 +325,11 @@ def hold_workdir(workdir: str):
   run), naming its holder's pid and host. The OS drops the lock when the
   process ends, kill -9 included, so nothing is left to clean by hand. If
   any process of the run finds its lock held, every process refuses, in
-  one line naming the holder, before anything is written. A directory it
-  made, left holding nothing but lock files (a training that failed
-  before writing), is removed again."""
+  one line naming the holder, before anything is written. On leaving,
+  process K > 0 removes its ``train.lock.K`` (``train.lock``, which process
+  0 holds throughout, keeps the directory for the run meanwhile), and a
+  directory it made, left holding nothing but lock files (a training that
+  failed before writing), is removed again."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise errors.UserError(f'{workdir}: a file, not a directory; give a run directory '
                            '(a new one, or a run to resume)')
@@ -321,10 +338,12 @@ def hold_workdir(workdir: str):
   k = jax.process_index()
   path = os.path.join(workdir, LOCK_FILE + (f'.{k}' if k else ''))
   fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+  held = False
   try:
     refused = ''
     try:
       fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+      held = True
     except OSError as e:
       if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
         raise
@@ -338,8 +357,11 @@ def hold_workdir(workdir: str):
     os.pwrite(fd, f'pid {os.getpid()} on host {socket.gethostname()}\n'.encode(), 0)
     yield
   finally:
-    if made and all(f.startswith(LOCK_FILE) for f in os.listdir(workdir)):
+    # Only a lock this process holds goes. The train.lock that every run's
+    # process 0 takes still guards the directory after a train.lock.K goes.
+    if held and (k or (made and all(f.startswith(LOCK_FILE) for f in os.listdir(workdir)))):
       with contextlib.suppress(OSError):
         os.unlink(path)
-        os.rmdir(workdir)  # fails while another process's lock file is there
+        if made:
+          os.rmdir(workdir)  # fails while another process's lock file is there
     os.close(fd)  # releases the lock

@@ -15,7 +15,7 @@ import sys
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from dusty_jax import cli, configs, parallel
+from dusty_jax import cli, configs, errors, parallel
 
 
 def _fields(c, prefix='') -> str:
@@ -54,7 +54,7 @@ def main(argv):
   try:
     cli.run(_train)
   except cli.Exit as e:
-    if parallel.joined() and not os.environ.get('DUSTY_JAX_TRACEBACK'):
+    if parallel.joined() and not errors.show_traceback():
       # Its line is printed. JAX's exit handler would wait for the other
       # processes at a shutdown barrier (for ever, if one is lost), then
       # abort with a C++ stack trace.

@@ -449,8 +449,8 @@ def train_and_evaluate(config, workdir: str, log=print,
       state = _train(config, workdir, log, watch)
   except BaseException as e:
     watch.close()
-    if any(parallel.is_peer_loss(x) for x in checkpoint.causes(e)) and not os.environ.get(
-        'DUSTY_JAX_TRACEBACK'):
+    if (any(parallel.is_peer_loss(x) for x in checkpoint.causes(e))
+        and not errors.show_traceback()):
       watch.lost(_first_line(e))
     raise
   watch.finish()
@@ -553,7 +553,7 @@ def _train(config, workdir: str, log, watch) -> TrainState:
   except jax.errors.JaxRuntimeError as e:
     # A lost peer fails a collective here; ends the process before the
     # waits below, which would wait for the peer.
-    if parallel.is_peer_loss(e) and not os.environ.get('DUSTY_JAX_TRACEBACK'):
+    if parallel.is_peer_loss(e) and not errors.show_traceback():
       watch.lost(_first_line(e))
     raise
   except KeyboardInterrupt:

@@ -85,6 +85,27 @@ def test_a_failed_command_leaves_no_async_noise_after_its_line(capsys, caplog):
   assert not [r for r in caplog.records if r.name == 'asyncio']
 
 
+@pytest.mark.parametrize('value,shown', [('1', True), ('yes', True), ('0', False),
+                                         ('off', False), ('', False), (None, False)])
+def test_dusty_jax_traceback_asks_for_tracebacks_unless_it_says_no(monkeypatch, capsys,
+                                                                  value, shown):
+  """One owner reads DUSTY_JAX_TRACEBACK (errors.show_traceback); '0' means
+  no, as for the other DUSTY_JAX_ switches (it used to mean yes)."""
+  from dusty_jax import cli, errors
+
+  def fails():
+    raise errors.UserError('bad input')
+
+  if value is None:
+    monkeypatch.delenv(errors.TRACEBACK_ENV, raising=False)
+  else:
+    monkeypatch.setenv(errors.TRACEBACK_ENV, value)
+  assert errors.show_traceback() is shown
+  with pytest.raises(errors.UserError if shown else cli.Exit):
+    cli.run(fails)
+  assert capsys.readouterr().err.strip() == ('' if shown else 'error: bad input')
+
+
 def test_unknown_field_message():
   import ml_collections
   from dusty_jax import cli

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 
+import jax
 import numpy as np
 import pytest
 
@@ -120,6 +121,24 @@ def test_a_peer_lost_during_a_checkpoint_write_reads_as_a_lost_peer(monkeypatch)
   # Other errors that mention connections are not: a disk, a refused download.
   for text in ('No space left on device', 'Connection reset by peer while fetching a URL'):
     assert not parallel.is_peer_loss(RuntimeError(text))
+  # UNAVAILABLE or a refused connection is a lost peer where it is the
+  # coordination service's address (process 0), not another's.
+  monkeypatch.setitem(parallel._run, 'coordinator', '127.0.0.1:41353')
+  grpc = ('UNAVAILABLE: failed to connect to all addresses; last error: UNKNOWN: '
+          'ipv4:{}: Failed to connect to remote host: Connection refused')
+  assert parallel.is_peer_loss(jax.errors.JaxRuntimeError(grpc.format('127.0.0.1:41353')))
+  for other in ('127.0.0.1:4135', '10.0.0.7:413530', 'storage.example.com:443'):
+    try:
+      try:
+        raise jax.errors.JaxRuntimeError(grpc.format(other))
+      except jax.errors.JaxRuntimeError as e:
+        raise checkpoint.CheckpointError('writing checkpoint 4 failed') from e
+    except checkpoint.CheckpointError as e:
+      assert not any(parallel.is_peer_loss(x) for x in checkpoint.causes(e)), other
+  monkeypatch.setitem(parallel._run, 'coordinator', None)  # joined by other means
+  assert not parallel.is_peer_loss(jax.errors.JaxRuntimeError(grpc.format('127.0.0.1:41353')))
+  assert parallel.is_peer_loss(jax.errors.JaxRuntimeError(
+      'UNAVAILABLE: the coordination service has stopped'))
   monkeypatch.setattr(parallel.jax, 'process_count', lambda: 1)
   assert not parallel.is_peer_loss(RuntimeError(GLOO_RESET))
 
@@ -228,3 +247,63 @@ def test_a_killed_holder_leaves_nothing_to_clean(tmp_path):
   with parallel.hold_workdir(run):  # the OS released it
     with open(os.path.join(run, parallel.LOCK_FILE)) as f:
       assert f.read() == f'pid {os.getpid()} on host {socket.gethostname()}\n'
+
+
+def test_a_process_k_lock_file_goes_with_its_lock(tmp_path, monkeypatch):
+  """train.lock.K of process K > 0 is removed on leaving, but only by the
+  process that held it; train.lock (process 0's) stays."""
+  import fcntl
+  run = tmp_path / 'run'
+  run.mkdir()
+  monkeypatch.setattr(parallel.jax, 'process_index', lambda: 1)
+  with parallel.hold_workdir(str(run)):
+    assert os.listdir(run) == ['train.lock.1']
+  assert os.listdir(run) == []
+  # Held by another: refused, and its file is left alone.
+  other = os.open(run / 'train.lock.1', os.O_RDWR | os.O_CREAT)
+  try:
+    fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    with pytest.raises(parallel.WorkdirInUse, match='train.lock.1 is held'):
+      with parallel.hold_workdir(str(run)):
+        pass
+    assert os.listdir(run) == ['train.lock.1']
+  finally:
+    os.close(other)
+  monkeypatch.setattr(parallel.jax, 'process_index', lambda: 0)
+  with parallel.hold_workdir(str(run)):
+    pass
+  assert sorted(os.listdir(run)) == ['train.lock', 'train.lock.1']
+
+
+# Two processes agree on texts twice (as hold_workdir and a training's log
+# steps do), then process 0 lists what the coordination service still holds
+# under dusty_jax/.
+_AGREE = """
+import sys
+import jax
+from dusty_jax import parallel
+port, k = sys.argv[1], int(sys.argv[2])
+parallel.initialize_distributed(f'127.0.0.1:{port}', 2, k)
+print(parallel.all_texts('lock', f'from {k}'), parallel.all_texts('save', 'yes' if k else ''))
+client = parallel._client()
+client.wait_at_barrier('test/done', 300_000)
+if k == 0:
+  print(client.key_value_dir_get('dusty_jax/'))
+client.wait_at_barrier('test/listed', 300_000)
+"""
+
+
+def test_agreeing_leaves_no_keys_behind(tmp_path):
+  port = _free_port()
+  procs = [subprocess.Popen([sys.executable, '-c', _AGREE, str(port), str(k)],
+                            env=_env(tmp_path), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True) for k in (0, 1)]
+  try:
+    outs = [p.communicate(timeout=300) for p in procs]
+  finally:
+    for p in procs:
+      p.kill()
+  assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
+  lines = [o[0].splitlines() for o in outs]
+  assert lines[1] == ["['from 0', 'from 1'] ['', 'yes']"]
+  assert lines[0] == lines[1] + ['[]']
