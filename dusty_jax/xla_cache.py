@@ -104,7 +104,8 @@ def enable() -> str | None:
                 f'are used, new ones are compiled in each process; make it writable, '
                 f'or set DUSTY_JAX_CACHE to a folder you can write')
   elif removed:
-    log.warning(f'removed {len(removed)} damaged entries of the compilation cache {path} '
+    what = 'entry' if len(removed) == 1 else 'entries'
+    log.warning(f'removed {len(removed)} damaged {what} of the compilation cache {path} '
                 f'(JAX could not read them); their programs are compiled and written again')
   _state['directory'] = path
   return path
