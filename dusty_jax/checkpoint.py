@@ -7,9 +7,11 @@ and trainer.py's business.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import gc
+import inspect
 import logging
 import os
 import re
@@ -63,38 +65,71 @@ class _DropAsyncioReports(logging.Filter):
     return False
 
 
+class _DrainingLoop(asyncio.SelectorEventLoop):
+  """An event loop that, before closing, awaits the tasks still pending on
+  it. orbax runs each restore in a fresh loop and closes it as soon as one
+  read fails, leaving the other reads running: their TensorStore callbacks
+  then hit a closed loop ('Event loop is closed', once per array)."""
+
+  def close(self):
+    if not self.is_running() and not self.is_closed():
+      pending = asyncio.all_tasks(self)
+      if pending:
+        self.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+    super().close()
+
+
+class _DrainingPolicy(asyncio.DefaultEventLoopPolicy):
+  _loop_factory = _DrainingLoop
+
+
 _quiet_lock = threading.Lock()
 _quiet_depth = 0
-_FILTERS = {'absl': _DropOrbaxRecords(), 'asyncio': _DropAsyncioReports()}
+_quiet_saved = {}
+
+
+def _unraisable(hook):
+  def drop_abandoned(unraisable):
+    # 'Exception ignored in: <coroutine object _read_array_index_and_device_put>'
+    # and 'Event loop is closed' from reads orbax abandoned.
+    if inspect.iscoroutine(unraisable.object) or (
+        isinstance(unraisable.exc_value, RuntimeError)
+        and 'Event loop is closed' in str(unraisable.exc_value)):
+      return
+    hook(unraisable)
+  return drop_abandoned
 
 
 @contextlib.contextmanager
 def quiet():
-  """Inside: orbax's absl log records and asyncio's reports about the reads
-  a failed restore abandons are dropped (filters on those two loggers);
-  everything else (the caller's own logs, other libraries) is untouched, and
-  the filters go on leaving. Re-entrant; the command lines hold it for a
-  whole run, since orbax saves in background threads.
-
-  Not silenced: after a restore of a step with truncated data files fails,
-  orbax closes its event loop while other reads are still running, and
-  TensorStore may report each as 'RuntimeError: Event loop is closed'
-  through sys.unraisablehook, a process-wide hook a library leaves alone."""
+  """Inside: orbax's absl log records are dropped, the event loops orbax
+  makes await what they leave pending before they close, and asyncio's and
+  the interpreter's reports about abandoned reads are dropped. Everything
+  else (the caller's own logs, other libraries) is untouched, and all is
+  restored on leaving. Re-entrant; the command lines hold it for a whole
+  run, since orbax saves in background threads."""
   global _quiet_depth
   with _quiet_lock:
     _quiet_depth += 1
     if _quiet_depth == 1:
-      for name, f in _FILTERS.items():
-        logging.getLogger(name).addFilter(f)
+      _quiet_saved['filters'] = (_DropOrbaxRecords(), _DropAsyncioReports())
+      logging.getLogger('absl').addFilter(_quiet_saved['filters'][0])
+      logging.getLogger('asyncio').addFilter(_quiet_saved['filters'][1])
+      _quiet_saved['policy'] = asyncio.get_event_loop_policy()
+      asyncio.set_event_loop_policy(_DrainingPolicy())
+      _quiet_saved['hook'] = sys.unraisablehook
+      sys.unraisablehook = _unraisable(sys.unraisablehook)
   try:
     yield
   finally:
     with _quiet_lock:
       _quiet_depth -= 1
       if _quiet_depth == 0:
-        gc.collect()  # abandoned tasks report now, while quiet.
-        for name, f in _FILTERS.items():
-          logging.getLogger(name).removeFilter(f)
+        gc.collect()  # abandoned coroutines and tasks report now, while quiet.
+        logging.getLogger('absl').removeFilter(_quiet_saved['filters'][0])
+        logging.getLogger('asyncio').removeFilter(_quiet_saved['filters'][1])
+        asyncio.set_event_loop_policy(_quiet_saved['policy'])
+        sys.unraisablehook = _quiet_saved['hook']
 
 
 # The folder of a save in progress: STEP.orbax-checkpoint-tmp[-TIMESTAMP].
