@@ -4,6 +4,7 @@ where a run directory is taken, and a mistake ends in one short error."""
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -81,11 +82,11 @@ def _entries(folder):
   return {p.name: p.read_bytes() for p in folder.glob('*' + xla_cache.ENTRY_SUFFIX)}
 
 
-def _stderr_lines(code: str, env: dict):
-  """stderr's lines of ``code`` run in a fresh process."""
+def _stderr_lines(code: str, env: dict, prefix=()):
+  """(stdout's words, stderr's lines) of ``code`` run in a fresh process."""
   full = {k: v for k, v in os.environ.items() if k != 'JAX_COMPILATION_CACHE_DIR'}
   full.update(env, XLA_FLAGS=FAST_COMPILE, PYTHONPATH=os.path.abspath(REPO))
-  r = subprocess.run([sys.executable, '-c', code], env=full, capture_output=True,
+  r = subprocess.run([*prefix, sys.executable, '-c', code], env=full, capture_output=True,
                      text=True, timeout=300)
   assert r.returncode == 0, r.stderr[-3000:]
   return r.stdout.split(), r.stderr.splitlines()
@@ -122,13 +123,15 @@ def test_a_damaged_entry_is_deleted_and_written_again(tmp_path):
 # In a cache where a new file fails as on a read-only mount (the tests may
 # run as root, whom chmod does not stop): a program the cache holds and a new
 # one, counting the programs read from the cache (jax.monitoring).
-_READ_ONLY = '''
+_REFUSE = '''
 import errno, tempfile
-import jax, jax.numpy as jnp
-from dusty_jax import xla_cache
 def refuse(*args, **kwargs):
   raise OSError(errno.EROFS, 'Read-only file system')
 tempfile.mkstemp = refuse
+'''
+_COUNT_HITS = '''
+import jax, jax.numpy as jnp
+from dusty_jax import xla_cache
 hits = []
 jax.monitoring.register_event_listener(
     lambda name, **kw: hits.append(name) if name.endswith('cache_hits') else None)
@@ -138,18 +141,22 @@ print(jax.jit(lambda x: jnp.cos(x) * 3)(jnp.arange(4.0)).sum(), len(hits))
 '''
 
 
+def _read_only_line(folder):
+  return (f'the compilation cache {folder} cannot be written: programs found there are '
+          'used, new ones are compiled in each process; make it writable, or set '
+          'DUSTY_JAX_CACHE to a folder you can write')
+
+
 def test_an_unwritable_cache_is_one_line_and_the_run_goes_on(tmp_path):
   env = {'DUSTY_JAX_CACHE': str(tmp_path), 'JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS': '0'}
   folder = tmp_path / 'xla'
   _stderr_lines(_COMPILE, env)
   written = _entries(folder)
   # Read-only: the program it holds is read, nothing is written, one line.
-  out, err = _stderr_lines(_READ_ONLY, env)
+  out, err = _stderr_lines(_REFUSE + _COUNT_HITS, env)
   assert out[0] == str(folder) and int(out[-1]) >= 1  # read from the cache
   assert _entries(folder) == written
-  assert err == [f'the compilation cache {folder} cannot be written: programs found there '
-                 'are used, new ones are compiled in each process; make it writable, or '
-                 'set DUSTY_JAX_CACHE to a folder you can write'], err
+  assert err == [_read_only_line(folder)], err
   # A cache folder that cannot be made (a file in its place): compiled as
   # without a cache, one line.
   other = tmp_path / 'other'
@@ -286,3 +293,30 @@ def test_a_relative_config_path_works_from_any_directory(tmp_path):
                      capture_output=True, text=True, timeout=300)
   assert r.returncode == 2 and 'no such config file, here or in' in r.stderr
   assert 'smoke.py' in r.stderr
+
+
+def _can_mount_read_only(tmp_path):
+  if not shutil.which('unshare'):
+    return False
+  return subprocess.run(['unshare', '--mount', 'sh', '-c', f'mount --bind {tmp_path} '
+                         f'{tmp_path} && mount -o remount,ro,bind {tmp_path}'],
+                        capture_output=True).returncode == 0
+
+
+def test_a_cache_on_a_read_only_mount_is_read_and_left_alone(tmp_path):
+  """As above, on a real read-only bind mount (where unshare may mount):
+  JAX's own 'Error writing persistent compilation cache entry' warnings
+  stay away too."""
+  if not _can_mount_read_only(tmp_path):
+    pytest.skip('needs unshare and bind mounts (root or user namespaces)')
+  env = {'DUSTY_JAX_CACHE': str(tmp_path), 'JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS': '0'}
+  _stderr_lines(_COMPILE, env)
+  folder = tmp_path / 'xla'
+  written = _entries(folder)
+  mount = (f'mount --bind {folder} {folder} && mount -o remount,ro,bind {folder} && '
+           'exec "$@"')
+  out, err = _stderr_lines(_COUNT_HITS, env, prefix=('unshare', '--mount', 'sh', '-c',
+                                                     mount, 'sh'))
+  assert out[0] == str(folder) and int(out[-1]) >= 1
+  assert err == [_read_only_line(folder)], err
+  assert _entries(folder) == written
