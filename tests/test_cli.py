@@ -172,7 +172,8 @@ BAD_TOOL_FLAGS = [
     ('invert', ['--corrupt', 'noise:-1'], r'fraction of the sensor.s depth range, not metres'),
     ('invert', ['--split', 'test'], r'give exactly one of --input and --split'),
     ('prepare', ['--splits', 'train,tset'], r'--splits=.*each split is one of train, val, test'),
-    ('synthesize', ['--sensor', 'hdl64'], r'--sensor=hdl64: value should be one of <kitti\|mpo>'),
+    ('synthesize', ['--sensor', 'hdl64'], r'--sensor=hdl64: a sensor preset \(hdl32e, hdl64e, kitti.*\) or an existing sensor spec file'),
+    ('prepare', ['--sensor', 'vlp32'], r'--sensor=vlp32: a sensor preset \(.*vlp16\), an existing sensor spec file, or auto'),
     ('evaluate', ['--num', '1'], r'--num=1: 1 is not integer >= 2'),
 ]
 TOOL_ARGS = {'invert': ['--workdir', 'sim-dusty1', '--input', 'x.npy'],

@@ -284,7 +284,7 @@ def test_synthesize_tool(tmp_path, capsys):
   assert arrays.load_split(out, 'val', kitti, 'drop_prob').shape == (1,) + kitti.shape
   assert not os.path.exists(arrays.split_path(out, 'test'))
   assert os.path.isfile(os.path.join(out, 'preview.png'))
-  with pytest.raises(SystemExit, match=r"unknown sensor 'hdl'; known presets: .*'kitti', 'mpo'.*or the path of a sensor spec"):
+  with pytest.raises(SystemExit, match=r"--sensor=hdl: a sensor preset .*kitti, mpo.* or an existing sensor spec file"):
     synthesize.main(['--num', '2', '--out', out, '--sensor', 'hdl'])
   with pytest.raises(SystemExit, match='preview.png: a file, not a folder; give a folder'):
     synthesize.main(['--num', '2', '--out', os.path.join(out, 'preview.png')])

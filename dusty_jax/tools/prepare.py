@@ -15,10 +15,13 @@ a count at the end (data/prepare.py); it never stops the conversion.
 
 from __future__ import annotations
 
+import os
+
 from absl import flags
 
 from dusty_jax import tools
 from dusty_jax.data import prepare
+from dusty_jax.sensor import PRESETS  # (numpy only)
 
 
 def main(argv=None):
@@ -34,6 +37,10 @@ def main(argv=None):
   flags.DEFINE_string('pattern', '*', 'files: which file names (a glob)', flag_values=f)
   flags.DEFINE_integer('split_seed', 0, 'files: the seed of the 80/10/10 split',
                        flag_values=f)
+  flags.register_validator(
+      'sensor', lambda v: v in ('', 'auto') or v in PRESETS or os.path.isfile(v),
+      f'a sensor preset ({", ".join(sorted(PRESETS))}), an existing sensor spec file, or auto',
+      flag_values=f)
   flags.register_validator(
       'splits', lambda v: set(v) <= set(prepare.SPLITS),
       f'each split is one of {", ".join(prepare.SPLITS)}', flag_values=f)

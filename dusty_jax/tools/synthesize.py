@@ -25,6 +25,10 @@ def main(argv=None):
   flags.DEFINE_integer('seed', 0, 'scene seed', flag_values=f)
   flags.DEFINE_string('sensor', 'kitti', f'a sensor preset ({", ".join(sorted(PRESETS))}) '
                       'or a sensor spec JSON file', flag_values=f)
+  flags.register_validator(
+      'sensor', lambda v: v in PRESETS or os.path.isfile(v),
+      f'a sensor preset ({", ".join(sorted(PRESETS))}) or an existing sensor spec file',
+      flag_values=f)
   flags.DEFINE_integer('val', None, 'validation scans (default num // 10)',
                        lower_bound=0, flag_values=f)
   flags.DEFINE_integer('test', None, 'test scans (default num // 10)', lower_bound=0,
