@@ -176,6 +176,13 @@ def _building(b: SceneBuilder, x0, x1, y_face, side, depth, height, ground, rng,
           np.stack([wx + 1.3, yy + 0.03, wz + 1.5], 1), 'glass')
 
 
+def kind_of(seed: int) -> str:
+  """The kind :func:`build_scene` gives scene ``seed`` when it is not told
+  one: the first draw of the scene's generator (the simulator records no
+  kind; this recovers it from the seed alone)."""
+  return SCENE_KINDS[np.random.default_rng(seed).integers(len(SCENE_KINDS))]
+
+
 def build_scene(seed: int, kind: str | None = None, mount_height: float = 1.73,
                 cross_street: bool | None = None):
   """(mesh, face_material, info) of one procedural scene around the origin.
@@ -184,7 +191,7 @@ def build_scene(seed: int, kind: str | None = None, mount_height: float = 1.73,
   runs along x. ``kind`` is urban, residential or rural (random if None).
   """
   rng = np.random.default_rng(seed)
-  kind = kind or SCENE_KINDS[rng.integers(len(SCENE_KINDS))]
+  kind = kind or SCENE_KINDS[rng.integers(len(SCENE_KINDS))]  # kind_of: this draw
   if kind not in SCENE_KINDS:
     raise ValueError(f'unknown scene kind {kind!r}; known: {SCENE_KINDS}')
   g = -mount_height

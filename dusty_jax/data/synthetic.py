@@ -18,7 +18,7 @@ import uuid
 import numpy as np
 import tqdm
 
-from dusty_jax.data import arrays, identity, simulated_lidar
+from dusty_jax.data import arrays, identity, scene, simulated_lidar
 from dusty_jax.sensor import SensorSpec
 
 # Scans a worker renders per task: few enough to keep both of two workers busy
@@ -65,9 +65,14 @@ def _without_main():
     sys.modules['__main__'] = main
 
 
+def scene_seeds(num: int, seed: int) -> list[int]:
+  """The scene seeds of ``num`` scans of dataset seed ``seed``: scan i is
+  scene ``seed * 1_000_003 + i``."""
+  return [seed * 1_000_003 + i for i in range(num)]
+
+
 def _jobs(num: int, sensor: SensorSpec, seed: int) -> list:
-  """Scan i of dataset seed ``seed`` is scene ``seed * 1_000_003 + i``."""
-  return [(seed * 1_000_003 + i, sensor) for i in range(num)]
+  return [(s, sensor) for s in scene_seeds(num, seed)]
 
 
 def _collect(results, num: int, sensor: SensorSpec, progress: bool, desc: str):
@@ -159,6 +164,18 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
           'identity': {k: identity.of_file(paths[k][0], whole=True) for k in splits}}
   arrays.write_meta(out, meta)
   return meta
+
+
+def scene_kinds(directory: str, split: str) -> np.ndarray:
+  """(N,) the scene kind (scene.SCENE_KINDS) of each scan of a split that
+  :func:`write_dataset` simulated into ``directory``, recovered from the
+  seeds its meta.json records (scene.kind_of). Refuses other datasets."""
+  meta = arrays.read_meta(directory)
+  if meta.get('dataset') != 'synthetic' or split not in meta.get('splits', {}):
+    raise ValueError(f'{directory}: no simulated {split!r} split recorded in its '
+                     f'{arrays.META} (scene kinds are known for simulated data only)')
+  seeds = scene_seeds(meta['splits'][split], meta['seed'] * 10 + SPLIT_SEED_OFFSET[split])
+  return np.array([scene.kind_of(s) for s in seeds])
 
 
 def save_preview(path: str, directory: str, sensor: SensorSpec, num: int = 4):

@@ -1,0 +1,175 @@
+"""benchmarks/scaling.py: a tiny run of the whole pipeline, its resumption, the
+size rule; the scene kinds it splits the test scans by."""
+
+import functools
+import json
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from dusty_jax import evaluation
+from dusty_jax.data import scene, synthetic
+
+BENCHMARKS = os.path.join(os.path.dirname(__file__), '..', 'benchmarks')
+sys.path.insert(0, BENCHMARKS)  # the benchmarks import their siblings by bare name
+import scaling  # noqa: E402
+
+SIZES = ('c4-16_z16', 'c8-32_z32')
+LENGTH_RUN = 'vlp16:64/c4-16_z16/0'
+
+
+def _argv(workdir, out, cache):
+  return ['--workdir', workdir, '--out', out, '--sensors', 'vlp16:64',
+          '--sizes', ','.join(SIZES), '--seeds', '0', '--steps', '4', '--keep-every', '2',
+          '--length-run', LENGTH_RUN, '--num-synthesis', '6', '--points', '32',
+          '--synthesis-seeds', '1', '--num-restore', '4', '--invert-steps', '2',
+          '--step-repeats', '2',
+          '--set', 'data.num_synthetic=90', '--set', 'batch_size=8',
+          '--set', 'checkpoint_every=2', '--set', 'log_every=2', '--set', 'image_every=100',
+          '--set', f'data.cache={cache}']
+
+
+def _finite(tree, path=''):
+  """Every number in ``tree`` is finite (None allowed only where said)."""
+  if isinstance(tree, dict):
+    for k, v in tree.items():
+      _finite(v, f'{path}.{k}')
+  elif isinstance(tree, list):
+    for i, v in enumerate(tree):
+      _finite(v, f'{path}[{i}]')
+  elif isinstance(tree, float):
+    assert math.isfinite(tree), path
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+  root = tmp_path_factory.mktemp('scaling')
+  argv = _argv(str(root / 'w'), str(root / 'out'), str(root / 'cache'))
+  mp = pytest.MonkeyPatch()
+  # Drop levels fitted to few iterations (the trainer and the length study call this).
+  mp.setattr(evaluation, 'fit_levels',
+             functools.partial(evaluation.fit_levels, num=16, num_steps=3))
+  record = scaling.main(argv)
+  yield root, argv, record
+  mp.undo()
+
+
+def test_record_has_every_figure_finite(run):
+  root, _, record = run
+  assert set(record['cells']) == {f'vlp16-64/{s}/seed0' for s in SIZES}
+  on_disk = json.load(open(root / 'out' / 'scaling.json'))
+  assert on_disk['cells'].keys() == record['cells'].keys() and 'machine' in on_disk
+  assert os.path.getsize(root / 'out' / 'scaling.png') > 1000
+  for key, cell in record['cells'].items():
+    sp = cell['speed']
+    assert sp['params_g'] > 0 and sp['params_d'] > 0 and sp['flops_per_step'] > 0
+    assert sp['step_s'] > 0 and len(sp['step_times_s']) == 2
+    assert sp['peak_rss_mib'] >= sp['peak_rss_train_mib'] > 0
+    assert sp['machine']['cpus'] >= 1
+    for b in ('1', '32'):
+      assert sp['invert'][b]['seconds'] > 0 and sp['invert'][b]['iterations'] == 2
+    for split in ('val', 'test'):
+      ev = cell[split]
+      assert set(ev['synthesis']['mean']) == {'jsd', 'cov', 'mmd', '1nna', 'swd'}
+      assert set(ev['restoration']) >= set(scaling.CORRUPTIONS)
+      assert 0 <= ev['inverted']['placement']['ece'] <= 1
+      _finite(ev['synthesis'])
+      _finite(ev['restoration'])
+    kinds = cell['test']['kinds']
+    assert set(kinds) <= set(scene.SCENE_KINDS)
+    assert sum(k['scans'] for k in kinds.values()) == 9  # 90 // 10 test scans
+    _finite(kinds)
+  big, small = (record['cells'][f'vlp16-64/{s}/seed0']['speed'] for s in reversed(SIZES))
+  assert big['params_g'] > small['params_g'] and big['flops_per_step'] > small['flops_per_step']
+  # The length study: the length run at steps 2 and 4 (its end: the test figures).
+  assert [p['step'] for p in record['length']] == [2, 4]
+  run_ = record['cells']['vlp16-64/c4-16_z16/seed0']
+  assert run_['length_0000004'] == run_['test']
+  assert os.path.isfile(root / 'w' / 'vlp16-64' / 'c4-16_z16' / 'seed0' / 'length' /
+                        'step0000002' / 'depth_levels.npz')
+  assert record['chosen']['vlp16-64']['largest'] == 'c8-32_z32'
+  assert record['chosen']['vlp16-64']['smallest'] in SIZES
+  assert 'vlp16-64/c4-16_z16/seed0' in record['summary_md']
+
+
+def test_rerun_skips_finished_work_and_resumes_a_killed_one(run, monkeypatch):
+  root, argv, first = run
+  def refuse(*args, **kwargs):
+    raise AssertionError('finished work done again')
+  for name in ('train', 'measure_in_subprocess', 'evaluate', 'with_fitted_levels'):
+    monkeypatch.setattr(scaling, name, refuse)
+  again = scaling.main(argv)
+  assert again['cells'] == first['cells']
+  # A call killed before its test section: only that section is done again.
+  path = root / 'w' / 'vlp16-64' / 'c8-32_z32' / 'seed0' / scaling.EVAL_FILE
+  data = json.load(open(path))
+  del data['test']
+  json.dump(data, open(path, 'w'))
+  calls = []
+  monkeypatch.setattr(scaling, 'evaluate',
+                      lambda params, split, which, a, kinds=None: calls.append(which) or
+                      {**first['cells']['vlp16-64/c8-32_z32/seed0']['test'], 'again': True})
+  third = scaling.main(argv)
+  assert calls == ['test']
+  assert third['cells']['vlp16-64/c8-32_z32/seed0']['test']['again']
+
+
+def test_smallest_within_spread_of_the_largest():
+  sizes = {  # lower is better; 'L' has two seeds: thresholds 1.25 and 0.5
+      'S': {'flops': 1, 'values': {'a': [1.0, 1.75], 'b': [0.25, 0.5]}},  # a's mean 1.375: out
+      'M': {'flops': 2, 'values': {'a': [1.25], 'b': [0.5]}},  # at both thresholds: in
+      'M2': {'flops': 3, 'values': {'a': [0.75], 'b': [0.25]}},  # in, but larger than M
+      'L': {'flops': 4, 'values': {'a': [1.0, 1.25], 'b': [0.375, 0.5]}},
+  }
+  got = scaling.smallest_within_spread(sizes)
+  assert got['largest'] == 'L' and got['thresholds'] == {'a': 1.25, 'b': 0.5}
+  assert got['smallest'] == 'M'
+  assert [s for s, v in got['verdicts'].items() if v['within']] == ['M', 'M2', 'L']
+  sizes['S']['values']['a'] = [1.0, 1.5]  # mean 1.25: within now
+  assert scaling.smallest_within_spread(sizes)['smallest'] == 'S'
+  # One seed of the largest: no spread, its own values are the bar.
+  one = {'S': {'flops': 1, 'values': {'a': [1.01]}}, 'L': {'flops': 2, 'values': {'a': [1.0]}}}
+  assert scaling.smallest_within_spread(one)['smallest'] == 'L'
+
+
+def test_scene_kind_from_the_seed_is_the_simulators():
+  seeds = synthetic.scene_seeds(40, 2)
+  kinds = [scene.kind_of(s) for s in seeds]
+  assert kinds == [scene.build_scene(s)[2]['kind'] for s in seeds]
+  assert set(kinds) == set(scene.SCENE_KINDS)
+
+
+def test_scene_kinds_of_a_split_and_refusal(tmp_path):
+  meta = {'dataset': 'synthetic', 'seed': 3, 'splits': {'train': 5, 'test': 4}}
+  (tmp_path / 'meta.json').write_text(json.dumps(meta))
+  got = synthetic.scene_kinds(str(tmp_path), 'test')
+  want = [scene.build_scene((3 * 10 + synthetic.SPLIT_SEED_OFFSET['test']) * 1_000_003 + i)[2]
+          ['kind'] for i in range(4)]
+  assert list(got) == want
+  with pytest.raises(ValueError, match='val'):
+    synthetic.scene_kinds(str(tmp_path), 'val')
+  (tmp_path / 'meta.json').write_text(json.dumps({'dataset': 'kitti', 'splits': {'test': 4}}))
+  with pytest.raises(ValueError, match='simulated'):
+    synthetic.scene_kinds(str(tmp_path), 'test')
+
+
+def test_cells_and_configs():
+  a = scaling.parse_args(['--sensors', 'kitti,vlp16:256', '--steps', '7'])
+  got = scaling.cells(a)
+  assert len(got) == 2 * (len(scaling.SIZES) + 2)
+  assert ('kitti', scaling.SIZES[0], 1) in got and ('kitti', scaling.MAIN_SIZE, 1) not in got
+  c = scaling.cell_config('vlp16:256', 'c32-256_z64', 1, a)
+  main = scaling.experiment().get_config()
+  assert (c.sensor.preset, c.sensor.width, c.ch_base, c.ch_max, c.latent_dim, c.seed) == (
+      'vlp16', 256, 32, 256, 64, 1)
+  assert c.num_steps == 7 and c.keep_every == scaling.KEEP_EVERY
+  # The recipe is the main command's: everything but what the grid changes.
+  changed = {'sensor', 'ch_base', 'ch_max', 'latent_dim', 'seed', 'num_steps', 'keep_every',
+             'final_eval'}
+  assert {k: v for k, v in c.to_dict().items() if k not in changed} == {
+      k: v for k, v in main.to_dict().items() if k not in changed}
+  with pytest.raises(ValueError, match='cBASE'):
+    scaling.parse_size('16-128')
