@@ -516,8 +516,10 @@ def picture(results: dict, length: list, length_run: str, path: str):
     ax1.errorbar(x, 100 * y, yerr=100 * np.abs([y - lo, np.asarray(hi) - y]), fmt='o-',
                  capsize=3, label=sensor)
     for xi, yi, n in zip(x, y, names):
-      ax1.annotate(n, (xi, 100 * yi), textcoords='offset points', xytext=(3, 4), fontsize=7)
+      ax1.annotate(f'{n} ({xi:.3g} s)', (xi, 100 * yi), textcoords='offset points', xytext=(3, 4), fontsize=7)
   ax1.set_xscale('log')
+  ax1.xaxis.set_minor_formatter(plt.NullFormatter())  # crowded in a narrow range; the
+                                                      # annotations give each time
   ax1.set_xlabel('seconds per train step')
   ax1.set_ylabel('1-NNA % (test; lower is better)')
   ax1.set_title('Quality against step time (bars: seeds)')
