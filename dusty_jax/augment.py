@@ -24,6 +24,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from dusty_jax import configs
 from dusty_jax.codec import ALPHA
 
 POLICY = ('brightness', 'contrast', 'translation', 'cutout')
@@ -89,6 +90,19 @@ def check(policy, style):
   for name in policy:
     if name not in FNS:
       raise ValueError(f'unknown augmentation {name!r}; known: {sorted(FNS)}')
+
+
+def check_config(config):
+  """configs.validate's check of a config's augmentation fields, here
+  beside the names it checks; raises configs.ConfigError naming the field."""
+  def need(ok, field, why):
+    if not ok:
+      raise configs.ConfigError(f'config field {field}={config[field]!r}: {why}')
+  need(config.augment_style in STYLES, 'augment_style',
+       f"must be one of {', '.join(map(repr, STYLES))}")
+  unknown = [p for p in config.augment.split(',') if p and p not in FNS]
+  need(not unknown, 'augment', unknown and f'{unknown[0]!r} is no augmentation; give a '
+       f"comma-separated list of {', '.join(FNS)} ('' for none)")
 
 
 def diff_augment(key, x, policy=POLICY, style='authors'):

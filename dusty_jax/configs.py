@@ -89,6 +89,10 @@ def default() -> ml_collections.ConfigDict:
   c.final_eval.points = 512       # points per cloud there
   c.final_eval.num_invert = 0     # test scans inverted (drop placement with ground truth)
   c.final_eval.invert_steps = 300
+
+  # What runs after the last step, in order (comma-separated names of
+  # AFTER_TRAINING); each acts where its own fields ask for it.
+  c.after_training = ','.join(AFTER_TRAINING)
   return c
 
 
@@ -118,6 +122,17 @@ def _missing(c, want, prefix='') -> str | None:
   return None
 
 
+# The steps after training (trainer.AFTER_TRAINING runs them):
+#   levels: fits the EMA generator's drop levels, where drops.depth_levels;
+#   final_evaluation: the short evaluation of final_eval, where it has scans.
+AFTER_TRAINING = ('levels', 'final_evaluation')
+
+
+def after_training(c) -> tuple:
+  """The names of the steps ``c.after_training`` lists, in order."""
+  return tuple(n.strip() for n in c.after_training.split(',') if n.strip())
+
+
 IMPLS = ('', 'matmul', 'xla')  # config field impl (layers.py)
 # The drops options that act on a measurability, with the value that is off.
 DROPS_OFF = (('rate_weight', 0), ('mask_bias', 0), ('ring_bias', False),
@@ -131,7 +146,8 @@ def _finite(v) -> bool:
 
 def validate(c) -> None:
   """Checks a config before any work; raises ConfigError naming the field
-  (the augmentation fields: trainer.check_augment, which owns them).
+  (the augmentation fields: augment.check_config, beside the names it
+  checks, since loading a generator reads configs and needs no augment.py).
   The one check: what is built from a valid config reads its fields as
   they are (every field of :func:`default` is present)."""
   missing = _missing(c, default())
@@ -162,6 +178,9 @@ def validate(c) -> None:
   if not (isinstance(c.data.memory_mb, int) and c.data.memory_mb >= 0):
     raise ConfigError(f'config field data.memory_mb={c.data.memory_mb!r}: must be a whole '
                       'number of MiB >= 0 (0: always read the training split from its file)')
+  unknown = [n for n in after_training(c) if n not in AFTER_TRAINING]
+  need(not unknown, 'after_training', unknown and f'{unknown[0]!r} is no step after '
+       f"training; give a comma-separated list of {', '.join(AFTER_TRAINING)} ('' for none)")
   need(_finite(c.lr) and c.lr > 0, 'lr', 'the learning rate must be a finite number > 0')
   need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
        else 'beta2', 'Adam betas must lie in [0, 1)')

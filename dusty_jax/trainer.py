@@ -20,6 +20,7 @@ A step composes three pure functions, each tested alone: ``d_step``, then
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -419,22 +420,11 @@ def _as_trained(config):
   return saved
 
 
-def check_augment(config):
-  """configs.validate's check of the augmentation fields; here, since
-  loading a generator reads configs, which must not import augment.py."""
-  def need(ok, field, why):
-    if not ok:
-      raise configs.ConfigError(f'config field {field}={config[field]!r}: {why}')
-  need(config.augment_style in augment.STYLES, 'augment_style',
-       f"must be one of {', '.join(map(repr, augment.STYLES))}")
-  unknown = [p for p in config.augment.split(',') if p and p not in augment.FNS]
-  need(not unknown, 'augment', unknown and f'{unknown[0]!r} is no augmentation; give a '
-       f"comma-separated list of {', '.join(augment.FNS)} ('' for none)")
-
-
 def train_and_evaluate(config, workdir: str, log=print,
                        peer_timeout: float = parallel.PEER_TIMEOUT_S) -> TrainState:
-  """Trains from scratch or resumes from the latest checkpoint in ``workdir``.
+  """Trains from scratch or resumes from the latest checkpoint in ``workdir``,
+  then runs the steps ``config.after_training`` names (AFTER_TRAINING), in
+  order.
 
   Holds ``workdir`` alone while it runs (parallel.hold_workdir): a second
   training on it is refused. In a run of several processes, a process whose
@@ -442,11 +432,13 @@ def train_and_evaluate(config, workdir: str, log=print,
   checkpoint a rerun of all processes resumes from (parallel.PeerWatch).
   """
   configs.validate(config)
-  check_augment(config)
+  augment.check_config(config)
   watch = parallel.PeerWatch(peer_timeout, functools.partial(_peer_lost, workdir))
   try:
     with parallel.hold_workdir(workdir):
-      state = _train(config, workdir, log, watch)
+      state, run = _train(config, workdir, log)
+      for name in configs.after_training(config):
+        run = AFTER_TRAINING[name](run)
   except BaseException as e:
     watch.close()
     if (any(parallel.is_peer_loss(x) for x in checkpoint.causes(e))
@@ -462,24 +454,50 @@ def _first_line(e: BaseException) -> str:
   return text.splitlines()[0][:200] if text else type(e).__name__
 
 
-def _train(config, workdir: str, log, watch) -> TrainState:
-  _check_resumable(workdir, config)
-  sensor = sensor_lib.from_config(config.sensor)
-  mesh = parallel.data_mesh()
-  parallel.local_batch_size(config.batch_size, mesh)  # checks divisibility
-  is_main = jax.process_index() == 0
-  setup = make_setup(config, sensor)
+class _Progress:
+  """The loop's metrics: kept on the device until a log step, then fetched
+  (:meth:`fetch`), averaged into the run's metrics (writers.MetricWriter)
+  and onto the progress bar (:meth:`write`)."""
 
+  def __init__(self, config, workdir: str, start: int, enabled: bool):
+    self.batch_size = config.batch_size
+    self.pending = []  # (step, device metrics) not yet fetched.
+    self.last = (time.time(), start)  # when the last log step was, and which
+    self.writer = writers.MetricWriter(workdir, enabled=enabled, resume_step=start)
+    self.bar = tqdm.tqdm(total=config.num_steps, initial=start, disable=not enabled,
+                         unit='step', dynamic_ncols=True, file=sys.stderr)
+
+  def fetch(self) -> list:
+    """[(step, {name: float})] of the steps since the last fetch."""
+    records = [(s, {k: float(v) for k, v in parallel.to_host(m).items()})
+               for s, m in self.pending]
+    self.pending = []
+    return records
+
+  def write(self, done: int, records: list):
+    now = time.time()
+    rate = (done - self.last[1]) * self.batch_size / max(now - self.last[0], 1e-9)
+    self.last = (now, done)
+    mean = {k: float(np.mean([m[k] for _, m in records])) for k in records[-1][1]}
+    mean['images_per_sec'] = rate
+    self.writer.write(done, mean)
+    self.bar.set_postfix(img_s=f'{rate:.1f}', d=f'{mean["loss_d"]:.3f}',
+                         g=f'{mean["loss_g"]:.3f}', drop=f'{mean["drop_rate"]:.2f}')
+
+
+def _start(config, workdir: str, setup: Setup, mesh, key, log):
+  """The training data, the run's files, and the state to start from: the
+  latest checkpoint in ``workdir`` or, with none, fresh networks (``key``).
+  Returns (data_dir, data, angles, batches, manager, state, start step)."""
+  sensor, is_main = setup.sensor, jax.process_index() == 0
   data_dir = pipeline.dataset_dir(config, sensor, log=log)
   data = pipeline.TrainingData(data_dir, sensor, config.data.memory_mb,
                                log=log if is_main else lambda m: None)
   data.start_run(workdir, bool(checkpoint.saved_steps(workdir)), config.data.allow_changed,
                  write=is_main)
-  depth = data.depth
   angles = arrays.load_angles(data_dir, sensor)
-  batches = pipeline.Batches(depth, sensor, config.batch_size, config.seed,
+  batches = pipeline.Batches(data.depth, sensor, config.batch_size, config.seed,
                              jax.process_index(), jax.process_count())
-
   if is_main:
     configs.save(workdir, _as_trained(config))
     # What a trained generator is, saved before any checkpoint: loading it
@@ -491,82 +509,68 @@ def _train(config, workdir: str, log, watch) -> TrainState:
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints,
                             keep_every=config.keep_every, cleanup_tmp=True,
                             log=log if is_main else None)
-  root = jax.random.key(config.seed)
-  k_init, k_step, k_img = jax.random.split(root, 3)
-  state = init_state(setup, k_init, drops.ring_keep_rate(depth, sensor)
+  state = init_state(setup, key, drops.ring_keep_rate(data.depth, sensor)
                      if setup.settings.ring_bias else None)
   # Placed on the mesh before restoring: each process then reads its own
   # part of the checkpoint, whatever process count wrote it.
-  state = parallel.replicate(state, mesh)
-  state, restored = checkpoint.restore_latest(mngr, state, log=log, set_aside=True)
-  start = 0 if restored is None else int(restored)
+  state, restored = checkpoint.restore_latest(mngr, parallel.replicate(state, mesh),
+                                              log=log, set_aside=True)
   if restored is not None:
-    log(f'resumed from step {start} in {workdir}')
+    log(f'resumed from step {restored} in {workdir}')
+  start = 0 if restored is None else int(restored)
+  return data_dir, data, angles, batches, mngr, state, start
+
+
+def _train(config, workdir: str, log):
+  """The loop: steps, logging and checkpoints. Returns (the final state, the
+  run as the steps after training see it)."""
+  _check_resumable(workdir, config)
+  mesh = parallel.data_mesh()
+  parallel.local_batch_size(config.batch_size, mesh)  # checks divisibility
+  is_main = jax.process_index() == 0
+  setup = make_setup(config, sensor_lib.from_config(config.sensor))
+  k_init, k_step, k_img = jax.random.split(jax.random.key(config.seed), 3)
+  data_dir, data, angles, batches, mngr, state, start = _start(config, workdir, setup,
+                                                               mesh, k_init, log)
   step = parallel.data_parallel(step_fn(setup), mesh)
-  writer = writers.MetricWriter(workdir, enabled=is_main, resume_step=start)
+  progress = _Progress(config, workdir, start, is_main)
   if data.switched:  # allowed by data.allow_changed; data.json says from what
     log(f'training on from step {start} on changed data ({data.switched})')
-    writer.write(start, {'data_switched': 1.0})
+    progress.writer.write(start, {'data_switched': 1.0})
   z_img = jax.random.normal(k_img, (config.num_images, setup.settings.latent_dim))
-
-  pending = []  # (step, device metrics) not yet fetched.
-  last_log = (time.time(), start)
-  bar = tqdm.tqdm(total=config.num_steps, initial=start, disable=not is_main,
-                  unit='step', dynamic_ncols=True, file=sys.stderr)
   done = start
   finished = False  # No error on its way: closing the writer may raise.
   saved_at = time.monotonic()  # of the last checkpoint, for checkpoint_minutes
   try:
     for i in range(start, config.num_steps):
-      batch = parallel.shard_batch(batches(i), mesh)
-      state, metrics = step(state, batch, k_step)
-      pending.append((i + 1, metrics))
+      state, metrics = step(state, parallel.shard_batch(batches(i), mesh), k_step)
       done = i + 1
+      progress.pending.append((done, metrics))
       # The first step's losses too: a newcomer sees numbers at once.
       log_now = (done == start + 1 or done % config.log_every == 0
                  or done == config.num_steps)
       ckpt_now = (done % config.checkpoint_every == 0 or done == config.num_steps
                   or _time_to_save(config, saved_at, log_now))
       if log_now or ckpt_now:
-        records = [(s, {k: float(v) for k, v in parallel.to_host(m).items()})
-                   for s, m in pending]
-        pending = []
+        records = progress.fetch()
         _check_finite(records, mngr.latest_step(), state.ema_params)
         data.check(done, mngr.latest_step(), functools.partial(parallel.all_texts, 'data'))
-        now = time.time()
-        rate = (done - last_log[1]) * config.batch_size / max(now - last_log[0], 1e-9)
-        last_log = (now, done)
-        mean = {k: float(np.mean([m[k] for _, m in records])) for k in records[-1][1]}
-        mean['images_per_sec'] = rate
-        writer.write(done, mean)
-        bar.set_postfix(img_s=f'{rate:.1f}', d=f'{mean["loss_d"]:.3f}',
-                        g=f'{mean["loss_g"]:.3f}', drop=f'{mean["drop_rate"]:.2f}')
+        progress.write(done, records)
       if ckpt_now:
         checkpoint.save(mngr, done, state)
         saved_at = time.monotonic()
       if is_main and (done % config.image_every == 0 or done == config.num_steps):
-        ema = generator_params(setup, state.ema_params, angles)
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
-                     ema, z_img, jax.random.key(0))
-      bar.update()
+                     generator_params(setup, state.ema_params, angles), z_img,
+                     jax.random.key(0))
+      progress.bar.update()
     finished = True
-  except jax.errors.JaxRuntimeError as e:
-    # A lost peer fails a collective here; ends the process before the
-    # waits below, which would wait for the peer.
-    if parallel.is_peer_loss(e) and not errors.show_traceback():
-      watch.lost(_first_line(e))
-    raise
   except KeyboardInterrupt:
-    bar.close()
+    progress.bar.close()
     checkpoint.wait(mngr)
-    last = mngr.latest_step()
-    raise errors.Interrupted(
-        f'interrupted at step {done}; ' +
-        (f'the last checkpoint is step {last}; rerun the same command to resume'
-         if last is not None else
-         'no checkpoint was saved yet; rerun the same command to start afresh')) from None
+    raise _interrupted(done, mngr.latest_step()) from None
   finally:
-    bar.close()
+    progress.bar.close()
     try:
       checkpoint.wait(mngr)
     except BaseException:
@@ -575,34 +579,82 @@ def _train(config, workdir: str, log, watch) -> TrainState:
     finally:
       # A second failure (the disk that failed a checkpoint also fails the
       # metrics) must not replace the one already on its way.
-      writer.close(quiet=not finished)
-  final = None  # the EMA generator as loading the run gives it
-  if setup.drops.depth_levels:
-    ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
-    kept = levels.load(workdir)
-    if kept is not None and kept[1] == done:  # a finished run started again
-      final = levels.with_levels(ema, kept[0], os.path.join(workdir, levels.FILE))
-    else:
-      # Every process fits the same levels (same inversions); one writes.
-      if is_main:
-        log(f'fitting drop levels per (ring, depth) cell to inversions of '
-            f'{min(len(depth), evaluation.LEVEL_SCANS)} training scans')
-      final = evaluation.fit_levels(ema, depth, progress=is_main)
-      if is_main:
-        levels.save(workdir, final.variables['params']['depth_levels'], done)
-        log(f'drop levels written: {levels.FILE} (applied when step {done} is loaded)')
-  fe = config.final_eval
-  if (fe.num_synthesis or fe.num_invert) and not os.path.isfile(
-      os.path.join(workdir, evaluation.AFTER_TRAINING + '.json')):
-    if jax.process_count() > 1:  # the others would wait for process 0 at JAX's exit
-      if is_main:
-        log(f'final_eval is left to one process: python -m dusty_jax.tools.evaluate '
-            f'--workdir {workdir}')
-    elif is_main:
-      log('short evaluation on the test split (config final_eval)')
-      if final is None:
-        final = generator_params(setup, parallel.to_host(state.ema_params), angles)
-      log(evaluation.summary(evaluation.after_training(
-          final, data_dir, workdir, num_synthesis=fe.num_synthesis, points=fe.points,
-          num_invert=fe.num_invert, invert_steps=fe.invert_steps)))
-  return state
+      progress.writer.close(quiet=not finished)
+  ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
+  return state, Trained(config=config, workdir=workdir, step=done, generator=ema,
+                        data_dir=data_dir, depth=data.depth, log=log)
+
+
+def _interrupted(done: int, last) -> errors.Interrupted:
+  """What Ctrl-C at step ``done`` says, the last checkpoint being ``last``."""
+  return errors.Interrupted(
+      f'interrupted at step {done}; ' +
+      (f'the last checkpoint is step {last}; rerun the same command to resume'
+       if last is not None else
+       'no checkpoint was saved yet; rerun the same command to start afresh'))
+
+
+# ----------------------------------------------------------------------------
+# After training: named steps that config.after_training lists (as
+# big_vision's config names its evaluators), run in order by
+# train_and_evaluate. Each takes the finished run and returns it, its
+# generator changed where the step changes it.
+# ----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Trained:
+  """A finished training, as the steps after it see it."""
+  config: Any
+  workdir: str
+  step: int  # the last step trained
+  generator: generator.GeneratorParams  # the EMA generator, on the host
+  data_dir: str  # the prepared dataset
+  depth: Any  # its training split (N, H, W), metric depth
+  log: Any
+
+
+def fit_drop_levels(run: Trained) -> Trained:
+  """'levels': where ``drops.depth_levels`` is set, the EMA generator's drop
+  levels per (ring, depth) cell fitted to inversions of training scans
+  (evaluation.fit_levels) and written to the run (levels.FILE, which loading
+  the run applies). A finished run started again reads the ones it wrote."""
+  if not run.config.drops.depth_levels:
+    return run
+  path = os.path.join(run.workdir, levels.FILE)
+  kept = levels.load(run.workdir)
+  if kept is not None and kept[1] == run.step:
+    return dataclasses.replace(run, generator=levels.with_levels(run.generator, kept[0], path))
+  # Every process fits the same levels (same inversions); one writes.
+  is_main = jax.process_index() == 0
+  if is_main:
+    run.log(f'fitting drop levels per (ring, depth) cell to inversions of '
+            f'{min(len(run.depth), evaluation.LEVEL_SCANS)} training scans')
+  fitted = evaluation.fit_levels(run.generator, run.depth, progress=is_main)
+  if is_main:
+    levels.save(run.workdir, fitted.variables['params']['depth_levels'], run.step)
+    run.log(f'drop levels written: {levels.FILE} (applied when step {run.step} is loaded)')
+  return dataclasses.replace(run, generator=fitted)
+
+
+def final_evaluation(run: Trained) -> Trained:
+  """'final_evaluation': where ``final_eval`` has scans, a short evaluation
+  on the test split (evaluation.after_training), once per run."""
+  fe = run.config.final_eval
+  if not (fe.num_synthesis or fe.num_invert) or os.path.isfile(
+      os.path.join(run.workdir, evaluation.AFTER_TRAINING + '.json')):
+    return run
+  if jax.process_count() > 1:  # the others would wait for process 0 at JAX's exit
+    if jax.process_index() == 0:
+      run.log(f'final_eval is left to one process: python -m dusty_jax.tools.evaluate '
+              f'--workdir {run.workdir}')
+    return run
+  run.log('short evaluation on the test split (config final_eval)')
+  run.log(evaluation.summary(evaluation.after_training(
+      run.generator, run.data_dir, run.workdir, num_synthesis=fe.num_synthesis,
+      points=fe.points, num_invert=fe.num_invert, invert_steps=fe.invert_steps)))
+  return run
+
+
+# config.after_training's names (configs.AFTER_TRAINING) and their steps.
+AFTER_TRAINING = {'levels': fit_drop_levels, 'final_evaluation': final_evaluation}

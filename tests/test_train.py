@@ -1,5 +1,6 @@
 """Training: data parallelism, multi-process, resume, NaN guard, CLI, API."""
 
+import dataclasses
 import json
 import shutil
 import os
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import configs, drops, parallel, trainer, writers
+from dusty_jax import configs, drops, levels, parallel, trainer, writers
 from conftest import FAST_COMPILE
 from event_files import read_events, scalars
 from train_helpers import run_steps, tiny_config
@@ -305,7 +306,8 @@ def test_ema_rampup_follows_generator_early():
 @pytest.mark.parametrize('field,value', [
     ('batch_size', 0), ('checkpoint_every', 0), ('log_every', 0), ('lr', -0.002),
     ('num_steps', 0), ('keep_checkpoints', 0), ('keep_every', -1), ('r1_every', 0),
-    ('tau', 0.0)])
+    ('tau', 0.0), ('augment', 'brightness,zoom'), ('augment_style', 'fancy'),
+    ('after_training', 'levels,plots')])
 def test_config_is_checked_before_any_work(tmp_path, field, value):
   config = tiny_config(**{field: value})
   workdir = tmp_path / 'w'
@@ -489,3 +491,41 @@ def test_a_training_ends_with_its_short_evaluation(smoke_run):
   assert f'MMD x1e3 {1e3 * record["synthesis"]["mmd"]:.1f}' in text
   assert f'ECE {record["ground_truth"]["placement"]["ece"]:.4f}' in text
   assert "keep rate per ring" in text
+
+
+def test_the_steps_after_training_run_as_the_config_lists_them(smoke_run, tmp_path,
+                                                               monkeypatch):
+  """config.after_training names the steps after the last one, in order,
+  each given the run the step before returned; a step left out does not
+  run. (A finished run started again trains no step.)"""
+  config, workdir, _ = smoke_run
+  copy = str(tmp_path / 'copy')
+  shutil.copytree(workdir, copy)
+  os.remove(os.path.join(copy, 'final_evaluation.json'))
+  seen = []
+
+  def step(name):
+    def run(trained):
+      seen.append((name, trained.step, trained.data_dir))
+      return dataclasses.replace(trained, step=trained.step + 1)
+    return run
+
+  for name in trainer.AFTER_TRAINING:
+    monkeypatch.setitem(trainer.AFTER_TRAINING, name, step(name))
+  config = config.copy_and_resolve_references()
+  config.after_training = 'final_evaluation,levels'
+  trainer.train_and_evaluate(config, copy, log=lambda m: None)
+  data = seen[0][2]
+  assert os.path.isdir(data)
+  assert seen == [('final_evaluation', config.num_steps, data),
+                  ('levels', config.num_steps + 1, data)]
+  monkeypatch.undo()
+  config.after_training = 'levels'  # drops.depth_levels is off: nothing to fit
+  trainer.train_and_evaluate(config, copy, log=lambda m: None)
+  assert not os.path.exists(os.path.join(copy, 'final_evaluation.json'))
+  assert not os.path.exists(os.path.join(copy, levels.FILE))
+  config.after_training = 'final_evaluation'
+  said = []
+  trainer.train_and_evaluate(config, copy, log=said.append)
+  assert os.path.isfile(os.path.join(copy, 'final_evaluation.json'))
+  assert said[-2] == 'short evaluation on the test split (config final_eval)'
