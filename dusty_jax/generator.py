@@ -39,6 +39,7 @@ from dusty_jax.models import ModelSettings
 from dusty_jax.sensor import SensorSpec, check_angles, from_config as sensor_from_config
 
 SPEC_FILE = 'generator.json'
+ENCODER_FILE = 'encoder.npz'  # a run's encoder (encoder.py), beside SPEC_FILE
 FORMAT = 2  # 2: an exported .npz may hold an encoder (encoder.py); 1 reads as before
 
 
@@ -225,11 +226,11 @@ def load(path: str, step: int | None = None, ema: bool = True,
     else:
       log(f'{os.path.join(path, levels.FILE)} fits step {fitted[1]}; step {restored} is '
           'loaded without those drop levels')
-  enc_path = os.path.join(path, encoder_lib.FILE)
+  enc_path = os.path.join(path, ENCODER_FILE)
   if os.path.isfile(enc_path):
-    enc, enc_settings, _ = encoder_lib.load(enc_path)
+    enc, enc_settings, _ = load_encoder(enc_path)
     params = params.replace(encoder=enc, encoder_settings=enc_settings)
-    encoder_lib.check(params, enc_path)
+    check_encoder(params, enc_path)
   return params, run_config
 
 
@@ -253,11 +254,10 @@ def export(params: GeneratorParams, path: str, source: str = '',
   meta = dict(describe(params.sensor, params.settings, params.tolerance), source=source)
   if training:
     meta['training'] = training
-  flat = traverse_util.flatten_dict(params.variables, sep='/')
-  arrs = {f'variables/{k}': np.asarray(v, np.float32) for k, v in flat.items()}
+  arrs = {f'variables/{k}': v for k, v in flatten(params.variables).items()}
   if params.encoder is not None:
     meta['encoder'] = dataclasses.asdict(params.encoder_settings)
-    arrs.update({f'encoder/{k}': v for k, v in encoder_lib.flatten(params.encoder).items()})
+    arrs.update({f'encoder/{k}': v for k, v in flatten(params.encoder).items()})
   np.savez_compressed(path, meta=np.asarray(json.dumps(meta)),
                       angles=np.asarray(params.angles, np.float32), **arrs)
   return path
@@ -277,8 +277,7 @@ def load_file(path: str) -> GeneratorParams:
       raise ValueError(f'{path}: not a generator exported by dusty_jax (no meta in the '
                        f'archive); {MODEL_FORMS}')
     meta = json.loads(str(f['meta']))
-    flat = {k[len('variables/'):]: jnp.asarray(f[k]) for k in f.files
-            if k.startswith('variables/')}
+    flat = {k[len('variables/'):]: f[k] for k in f.files if k.startswith('variables/')}
     enc = {k[len('encoder/'):]: f[k] for k in f.files if k.startswith('encoder/')}
     table = jnp.asarray(f['angles'])
   if 'settings' not in meta:  # files written before format 1: flat fields.
@@ -286,12 +285,67 @@ def load_file(path: str) -> GeneratorParams:
             'settings': {k: meta[k] for k in ('model', 'latent_dim', 'ch_base',
                                               'ch_max', 'tau', 'eqlr') if k in meta}}
   sensor, settings, tolerance = _from_description(meta, path)
-  params = GeneratorParams(variables=traverse_util.unflatten_dict(flat, sep='/'),
+  params = GeneratorParams(variables=unflatten(flat),
                            angles=table, sensor=sensor, settings=settings,
                            tolerance=tolerance)
   check(params, path)
   if enc:  # format 2
-    params = params.replace(encoder=encoder_lib.unflatten(enc),
+    params = params.replace(encoder=unflatten(enc),
                             encoder_settings=encoder_lib.EncoderSettings(**meta['encoder']))
-    encoder_lib.check(params, path)
+    check_encoder(params, path)
   return params
+
+
+# ----------------------------------------------------------------------------
+# A run's encoder (encoder.py) on disk: ENCODER_FILE in the run directory;
+# the same arrays inside an exported generator .npz, under encoder/.
+# ----------------------------------------------------------------------------
+
+
+def flatten(variables) -> dict:
+  """{'a/b/c': float32 array} of a variables tree, as the .npz files hold it."""
+  return {k: np.asarray(v, np.float32)
+          for k, v in traverse_util.flatten_dict(variables, sep='/').items()}
+
+
+def unflatten(flat: dict):
+  return traverse_util.unflatten_dict({k: jnp.asarray(v) for k, v in flat.items()},
+                                      sep='/')
+
+
+def save_encoder(path: str, variables, settings: encoder_lib.EncoderSettings,
+                 info: dict | None = None):
+  """Writes an encoder's variables and settings as one .npz (atomically)."""
+  meta = {**(info or {}), 'settings': dataclasses.asdict(settings)}
+  tmp = path + '.tmp.npz'
+  np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)),
+                      **{f'encoder/{k}': v for k, v in flatten(variables).items()})
+  os.replace(tmp, path)
+  return path
+
+
+def load_encoder(path: str):
+  """(variables, settings, meta) of an encoder written by :func:`save_encoder`."""
+  try:
+    with np.load(path, allow_pickle=False) as f:
+      meta = json.loads(str(f['meta']))
+      flat = {k[len('encoder/'):]: f[k] for k in f.files if k.startswith('encoder/')}
+  except (OSError, ValueError, KeyError) as e:
+    raise ValueError(f'{path}: not an encoder file ({e})') from None
+  try:
+    settings = encoder_lib.EncoderSettings(**meta['settings'])
+  except (KeyError, TypeError) as e:
+    raise ValueError(f'{path}: not an encoder description ({e})') from None
+  return unflatten(flat), settings, meta
+
+
+def check_encoder(params: GeneratorParams, source: str):
+  """Refuses encoder variables that do not fit the described network."""
+  want = jax.eval_shape(encoder_lib.module(params).init, jax.random.key(0),
+                        jnp.zeros((1,) + params.sensor.shape))
+  shape = lambda t: jax.tree.map(lambda v: tuple(np.shape(v)), t)
+  if shape(want) != shape(params.encoder):
+    raise ValueError(f'{source}: the encoder does not fit this generator (latent '
+                     f'{params.latent_dim}, sensor {params.sensor.shape}, '
+                     f'{params.encoder_settings}); retrain it with '
+                     f'`{encoder_lib.TRAIN_COMMAND}`')

@@ -1,4 +1,5 @@
-"""The encoder that starts inversion (encoder.py, tools/train_encoder.py)."""
+"""The encoder that starts inversion (encoder.py, encoder_trainer.py,
+tools/train_encoder.py; its files: generator.py)."""
 
 import json
 import os
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import checkpoint, codec, encoder, generator, inversion, sampling
+from dusty_jax import checkpoint, codec, encoder, encoder_trainer, generator, inversion, sampling
 from dusty_jax.codec import ALPHA
 
 
@@ -30,13 +31,13 @@ def test_train_command_writes_an_encoder_that_loads_and_resumes(trained, capsys)
   from dusty_jax.tools import train_encoder
   params, _ = dusty_jax.load_checkpoint(trained)
   assert params.encoder is not None
-  saved = encoder.load(os.path.join(trained, encoder.FILE))[2]
+  saved = generator.load_encoder(os.path.join(trained, generator.ENCODER_FILE))[2]
   assert saved['steps'] == 3 and saved['options']['batch'] == 4
   # A rerun with the same flags finds the last checkpoint: nothing to do,
   # and the encoder it writes is the same.
-  before = encoder.flatten(params.encoder)
+  before = generator.flatten(params.encoder)
   train_encoder.main(['--workdir', trained, '--steps', '3', '--batch', '4'])
-  after = encoder.flatten(dusty_jax.load_checkpoint(trained)[0].encoder)
+  after = generator.flatten(dusty_jax.load_checkpoint(trained)[0].encoder)
   assert before.keys() == after.keys()
   for k in before:
     np.testing.assert_array_equal(before[k], after[k])
@@ -46,7 +47,7 @@ def test_train_command_writes_an_encoder_that_loads_and_resumes(trained, capsys)
                      [f'--{k}={v}' for k, v in saved['options'].items()])
   # Other options than the saved training's are refused, naming the folder.
   with pytest.raises(ValueError, match='other options.*steps'):
-    train_encoder.train(trained, encoder.TrainOptions(steps=5, batch=4))
+    train_encoder.train(trained, encoder_trainer.TrainOptions(steps=5, batch=4))
 
 
 def test_the_encoder_answers_on_the_sphere(trained):
@@ -76,10 +77,10 @@ def test_zero_steps_is_the_encoders_forward_pass(trained):
 def test_corrupt_one_gives_one_of_the_corruptions(kitti):
   rng = np.random.default_rng(0)
   scan = jnp.asarray(rng.uniform(-0.95, -0.85, kitti.shape), jnp.float32)  # 10-40 m: noise keeps them
-  opts = encoder.TrainOptions()
+  opts = encoder_trainer.TrainOptions()
   seen = set()
   for i in range(24):
-    x = np.asarray(encoder.corrupt_one(jax.random.key(i), scan, kitti, opts))
+    x = np.asarray(encoder_trainer.corrupt_one(jax.random.key(i), scan, kitti, opts))
     dropped = x == ALPHA
     rows_only = dropped.any(axis=1) & ~dropped.all(axis=1)
     if not dropped.any():
@@ -99,10 +100,10 @@ def test_corrupt_one_gives_one_of_the_corruptions(kitti):
 
 def test_loss_terms_match_their_definition(trained):
   params, _ = dusty_jax.load_checkpoint(trained)
-  opts = encoder.TrainOptions(w_latent=2.0, w_rec=0.5)
-  z, inputs, target = jax.jit(encoder.samples, static_argnums=(2, 3))(
+  opts = encoder_trainer.TrainOptions(w_latent=2.0, w_rec=0.5)
+  z, inputs, target = jax.jit(encoder_trainer.samples, static_argnums=(2, 3))(
       params, jax.random.key(3), 4, opts)
-  loss_fn = jax.jit(encoder.loss_fn, static_argnames=('opts',))
+  loss_fn = jax.jit(encoder_trainer.loss_fn, static_argnames=('opts',))
   total, (lat, rec, real) = loss_fn(params.encoder, params, z, inputs, target, opts=opts)
   apply = jax.jit(params.module().apply)
   e = np.asarray(encoder.encode(params, inputs), np.float64)
@@ -129,8 +130,8 @@ def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):
   path = generator.export(params, str(tmp_path / 'g.npz'))
   back = generator.load_file(path)
   assert back.encoder_settings == params.encoder_settings
-  for (ka, va), (kb, vb) in zip(encoder.flatten(params.encoder).items(),
-                                encoder.flatten(back.encoder).items()):
+  for (ka, va), (kb, vb) in zip(generator.flatten(params.encoder).items(),
+                                generator.flatten(back.encoder).items()):
     assert ka == kb
     np.testing.assert_array_equal(va, vb)
   # A format-1 file (no encoder arrays) loads, without an encoder.
@@ -149,13 +150,13 @@ def test_a_second_encoder_training_on_one_folder_is_refused(trained):
   """Two encoder trainings on one run would write each other's checkpoints:
   the second is refused, naming the holder, and the folder is left as it was."""
   from dusty_jax import parallel
-  folder = os.path.join(trained, encoder.DIRECTORY)
+  folder = os.path.join(trained, encoder_trainer.DIRECTORY)
   before = sorted(os.listdir(folder))
   params, _ = dusty_jax.load_checkpoint(trained)
   with parallel.hold_workdir(folder):
     with pytest.raises(parallel.WorkdirInUse,
                        match=f'{re.escape(folder)} is in use.*pid {os.getpid()}'):
-      encoder.train(params, folder, encoder.TrainOptions(steps=3, batch=4, w_real=0))
+      encoder_trainer.train(params, folder, encoder_trainer.TrainOptions(steps=3, batch=4, w_real=0))
   assert sorted(os.listdir(folder)) == before
 
 
@@ -163,7 +164,7 @@ def test_a_resumed_encoder_training_clears_a_save_cut_short(trained):
   """A save cut short (a kill) leaves orbax's tmp folder; the next training
   on the run, which holds the folder alone, removes it and resumes."""
   from dusty_jax.tools import train_encoder
-  folder = os.path.join(trained, encoder.DIRECTORY, checkpoint.DIRECTORY)
+  folder = os.path.join(trained, encoder_trainer.DIRECTORY, checkpoint.DIRECTORY)
   assert os.path.isdir(os.path.join(folder, '3'))
   cut = os.path.join(folder, '6.orbax-checkpoint-tmp-1')
   os.makedirs(cut)
@@ -184,17 +185,17 @@ def test_bad_inputs_get_clear_errors(smoke_run, trained, tmp_path):
   # An encoder of another generator's size is refused when its run loads.
   run = str(tmp_path / 'run')
   shutil.copytree(trained, run)
-  enc, settings, meta = encoder.load(os.path.join(run, encoder.FILE))
-  encoder.save(os.path.join(run, encoder.FILE), enc,
+  enc, settings, meta = generator.load_encoder(os.path.join(run, generator.ENCODER_FILE))
+  generator.save_encoder(os.path.join(run, generator.ENCODER_FILE), enc,
                encoder.EncoderSettings(hidden=settings.hidden + 1), meta)
   with pytest.raises(ValueError, match='encoder does not fit'):
     dusty_jax.load_checkpoint(run)
   from dusty_jax.tools import train_encoder
   with pytest.raises(FileNotFoundError, match='nothing: no such run directory$'):
-    train_encoder.train(str(tmp_path / 'nothing'), encoder.TrainOptions())
-  for model in ('sim-dusty2', os.path.join(run, encoder.FILE)):  # no training state
+    train_encoder.train(str(tmp_path / 'nothing'), encoder_trainer.TrainOptions())
+  for model in ('sim-dusty2', os.path.join(run, generator.ENCODER_FILE)):  # no training state
     with pytest.raises(FileNotFoundError, match='not a training run directory .*pretrained'):
-      train_encoder.train(model, encoder.TrainOptions())
+      train_encoder.train(model, encoder_trainer.TrainOptions())
 
 
 def test_shipped_encoder_beats_a_random_start():

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import cli, codec, encoder, inversion, pretrained, xla_cache
+from dusty_jax import cli, codec, encoder_trainer, inversion, pretrained, xla_cache
 from dusty_jax.data import pipeline
 from dusty_jax.sensor import get_sensor
 from dusty_jax.tools import train_encoder
@@ -256,12 +256,13 @@ def test_tools_take_a_pretrained_name(shipped, tmp_path, capsys):
 
 def test_train_encoder_usage_names_its_default_steps():
   steps = re.findall(r'--steps (\d+)', train_encoder.__doc__)
-  assert steps == [str(encoder.TrainOptions().steps)]
+  assert steps == [str(encoder_trainer.TrainOptions().steps)]
 
 
 def test_encoder_training_without_scans_for_its_real_term_is_refused(shipped, tmp_path):
   with pytest.raises(ValueError, match=r'w_real=1.0: the real-scan term needs'):
-    encoder.train(shipped[1], str(tmp_path / 'enc'), encoder.TrainOptions(steps=1))
+    encoder_trainer.train(shipped[1], str(tmp_path / 'enc'),
+                          encoder_trainer.TrainOptions(steps=1))
 
 
 def test_train_help_lists_the_configs_and_their_fields():

@@ -5,8 +5,7 @@ is what the simulated LiDAR was written against, and its answers are the
 reference: every cached dataset holds them. Per scan it spends most of its
 time outside Embree: embreex copies the mesh into Embree one Python-level
 element at a time (its ``mesh_construction.pyx`` indexes a generic ndarray
-per vertex and per triangle, about 10 ms for a 12,000-triangle scene), and
-trimesh recomputes and hashes its cached bookkeeping per call.
+per vertex and per triangle), and trimesh recomputes and hashes its cached bookkeeping per call.
 
 :func:`first_hits` gives the same answers for less: the library embreex ships
 is called through ctypes with the mesh as shared buffers, the same scene

@@ -2,7 +2,7 @@
 
     python -m dusty_jax.tools.train_encoder --workdir RUN [--steps 600] [--batch 32]
 
-Reads the run's EMA generator (frozen), trains an encoder (encoder.train) on
+Reads the run's EMA generator (frozen), trains an encoder (encoder_trainer.train) on
 the generator's own samples with random corruptions, checkpoints into
 ``RUN/encoder/`` (a rerun resumes there) and writes ``RUN/encoder.npz``,
 which ``load_checkpoint(RUN)`` then attaches, so that
@@ -22,7 +22,7 @@ from dusty_jax import tools
 
 
 def main(argv=None):
-  from dusty_jax.encoder import TrainOptions  # its defaults are the flags' defaults
+  from dusty_jax.encoder_trainer import TrainOptions  # its defaults are the flags' defaults
   d = TrainOptions()
   f = flags.FlagValues()
   flags.DEFINE_string('workdir', None, 'training run directory', flag_values=f,
@@ -69,10 +69,10 @@ def _training_scans(workdir: str, config, sensor):
 
 
 def train(workdir: str, opts, export: str = '') -> str:
-  """encoder.train on the run ``workdir``'s generator; writes RUN/encoder.npz
+  """encoder_trainer.train on the run ``workdir``'s generator; writes RUN/encoder.npz
   (and ``export``). Returns what was written."""
   # The library (and JAX) load once the flags are good.
-  from dusty_jax import encoder, generator, pretrained
+  from dusty_jax import encoder, encoder_trainer, generator, pretrained
 
   if not os.path.exists(workdir) and workdir not in pretrained.available():
     raise FileNotFoundError(f'{workdir}: no such run directory')
@@ -83,9 +83,10 @@ def train(workdir: str, opts, export: str = '') -> str:
   params, config = generator.load(workdir)
   real = _training_scans(workdir, config, params.sensor) if opts.w_real > 0 else None
   settings = encoder.EncoderSettings()
-  enc_vars, info = encoder.train(params, os.path.join(workdir, encoder.DIRECTORY), opts,
-                                 real, settings)
-  path = encoder.save(os.path.join(workdir, encoder.FILE), enc_vars, settings, info)
+  enc_vars, info = encoder_trainer.train(params, os.path.join(workdir, encoder_trainer.DIRECTORY),
+                                         opts, real, settings)
+  path = generator.save_encoder(os.path.join(workdir, generator.ENCODER_FILE), enc_vars,
+                                settings, info)
   if export:
     generator.export(params.replace(encoder=enc_vars, encoder_settings=settings), export,
                      source=f'{os.path.abspath(workdir)} + encoder ({opts.steps} steps)')
