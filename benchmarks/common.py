@@ -10,9 +10,12 @@ from __future__ import annotations
 import json
 import os
 import platform
+import runpy
 import statistics
 import time
 from typing import Callable, NamedTuple
+
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 # ----------------------------------------------------------------------------
@@ -111,3 +114,9 @@ def pyplot():
   matplotlib.use('Agg')
   import matplotlib.pyplot as plt
   return plt
+
+
+def experiment(name: str) -> dict:
+  """The globals of the repository's ``experiments/NAME.py`` (its
+  ``get_config``; study.py's ``study`` and ``PRESETS``)."""
+  return runpy.run_path(os.path.join(os.path.dirname(HERE), 'experiments', f'{name}.py'))

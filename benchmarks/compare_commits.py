@@ -19,7 +19,8 @@ XLA's optimised HLO instruction by instruction, names, numbers and source
 locations left out: the whole step ('step') and the state update alone,
 its logged metrics left to dead-code elimination ('update'). Identical
 programs run at the same speed whatever the timings say. The configs are
-built by this checkout and read by each commit through its configs.upgrade.
+built by this checkout (experiments/study.py's recipes) and read by each
+commit as they are.
 ``--before`` and ``--after`` also take a directory holding a checkout
 (``--after .``: this working tree as it is); ``--rounds 0`` skips the
 timings. Where the programs differ,
@@ -73,10 +74,10 @@ def measure(tree: str, args, out: str) -> dict:
 # and prints its optimised HLO instructions, canonicalised (no names,
 # numbers or locations).
 HLO_SNIPPET = r"""
-import json, re, sys, jax, numpy as np
-from dusty_jax import configs, parallel, trainer
+import json, re, sys, jax, ml_collections, numpy as np
+from dusty_jax import parallel, trainer
 from dusty_jax.sensor import from_config
-c = configs.upgrade(json.loads(sys.argv[1]))
+c = ml_collections.ConfigDict(json.loads(sys.argv[1]))
 sensor = from_config(c.sensor)
 setup = trainer.make_setup(c, sensor)
 fn = trainer.step_fn(setup)
@@ -103,7 +104,7 @@ def _small(r1_every: int):
 
 
 def _study(model, preset):
-  c = configs.study(model, preset, 'cpu')
+  c = common.experiment('study')['study'](model, preset, 'cpu')
   c.impl = 'matmul'
   return c
 

@@ -41,7 +41,7 @@ import numpy as np
 import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-# Run name -> (model, drops preset) of configs.study (experiments/study.py).
+# Run name -> (model, drops preset) of experiments/study.py.
 RUNS = {'baseline': ('baseline', 'authors'), 'dusty1': ('dusty1', 'authors'),
         'dusty2': ('dusty2', 'authors'), 'dusty1_levels': ('dusty1', 'levels'),
         'dusty1_dipdrops': ('dusty1', 'dips'), 'dusty2_dipdrops': ('dusty2', 'dips')}
@@ -99,8 +99,7 @@ def parse_args(argv=None):
 
 
 def model_config(model, a):
-  from dusty_jax import configs
-  c = configs.study(*RUNS[model], a.scale)
+  c = common.experiment('study')['study'](*RUNS[model], a.scale)
   if a.steps:
     c.num_steps = a.steps
   return c
@@ -441,11 +440,11 @@ def report(results, trade_result, trade_model, train_seconds, a, machine, kitti_
               (f'with `--reuse {os.path.basename(a.reuse)}` their {", ".join(REUSED_SECTIONS)}'
                ' sections are that run\'s, the rest computed here.' if a.reuse else
                'every section computed here.'), '']
-  from dusty_jax import drops
+  presets = common.experiment('study')['PRESETS']
   for preset in sorted({RUNS[m][1] for m in results} - {'authors'}):
     runs = ', '.join(m for m in results if RUNS[m][1] == preset)
     lines += [f'{runs} (beyond the paper, dusty_jax/drops.py) add the `drops` preset'
-              f' {preset!r}: {drops.PRESETS[preset]}.', '']
+              f' {preset!r}: {presets[preset]}.', '']
   lines += [
       f'## Synthesis (Table II layout; N = {first["synthesis"]["num"]} clouds of'
       f' {first["synthesis"]["points"]} points, {first["synthesis"]["seeds"]} seeds)',

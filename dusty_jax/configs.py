@@ -97,8 +97,13 @@ def default() -> ml_collections.ConfigDict:
 
 
 def drop_defaults() -> ml_collections.ConfigDict:
-  """The point-drop options (drops.DropOptions, which describes each), all off."""
-  return ml_collections.ConfigDict(dataclasses.asdict(drops_lib.DropOptions()))
+  """The point-drop options, all off: drops.DropOptions' (which describes
+  each), and ring_bias, which changes the networks: a learned logit offset
+  per ring on G's pixel measurability (models.ModelSettings.ring_bias),
+  started at the training data's keep rate of that ring
+  (drops.set_ring_bias)."""
+  return ml_collections.ConfigDict(dict(dataclasses.asdict(drops_lib.DropOptions()),
+                                        ring_bias=False))
 
 
 class ConfigError(errors.UserError, ValueError):
@@ -115,7 +120,7 @@ def _missing(c, want, prefix='') -> str | None:
   for k, v in want.items():
     if k not in c:
       return prefix + k
-    if isinstance(v, ml_collections.ConfigDict) and isinstance(c[k], ml_collections.ConfigDict):
+    if isinstance(v, ml_collections.ConfigDict) and hasattr(c[k], 'keys'):
       missing = _missing(c[k], v, f'{prefix}{k}.')
       if missing:
         return missing
@@ -236,70 +241,8 @@ def validate(c) -> None:
               f'experiments/study.py:{c.model}')
 
 
-# Runs written before these options existed trained with what is now the
-# non-default choice (keep_every: kept as the default does; checkpoint_minutes:
-# saved by steps only); their config.json lacks the field.
-LEGACY = {'eqlr': 'fan_in', 'augment_style': 'symmetric',
-          'keep_every': 0, 'checkpoint_minutes': 0.0}
-
-
-# Drop options removed from the library, with the value that turned them off,
-# and the last commit that has them (LAST_WITH; their figures are in
-# benchmarks/research/drops/).
-REMOVED_DROPS = {'mask_channel': 0.0, 'mask_noise': 0.0, 'mask_dropout': 0.0,
-                 'keep_drops': False, 'mask_lr': 1.0, 'rate_shrink': 0.0,
-                 'depth_weight': 0.0, 'range_slope': False,
-                 'peak_weight': 0.0, 'far_weight': 0.0, 'rate_skip_far': False}
-# drops.rate_by left too: its 'ring_depth' cells are what the rate term is;
-# its other values (the whole batch's, each ring's rate) trained only there.
-RATE_BY = 'ring_depth'
-LAST_WITH = {**dict.fromkeys(REMOVED_DROPS, 'f597033'),
-             **dict.fromkeys(('peak_weight', 'far_weight', 'rate_skip_far'), 'ca3bdad'),
-             'rate_by': 'eb52e94', 'drop_const': 'eb52e94'}
-
-
-def removed_option(field: str, value, where: str = 'config field drops.'):
-  """Raises ConfigError if ``value`` of the removed option ``field`` is not
-  the one that turned it off (a run that used it cannot be reproduced)."""
-  if value != REMOVED_DROPS[field]:
-    raise ConfigError(f'{where}{field}={value!r}: this option was removed; commit '
-                      f'{LAST_WITH[field]} is the last that has it')
-
-
-def upgrade(config) -> ml_collections.ConfigDict:
-  """The one translation of older configs: a copy in which each field the
-  config predates holds the value such runs used (LEGACY), the ``drops``
-  group (runs from before it: all off) has every option, and the removed
-  options (REMOVED_DROPS, rate_by) are gone where they were off."""
-  c = ml_collections.ConfigDict(config.to_dict() if hasattr(config, 'to_dict') else config)
-  if 'drop_const' in c:  # drops seen as ALPHA (the codec's), the one value that won
-    if c.drop_const != -1.0:
-      raise ConfigError(f'config field drop_const={c.drop_const!r}: this option was '
-                        f"removed; commit {LAST_WITH['drop_const']} is the last that has it")
-    del c['drop_const']
-  for field, value in LEGACY.items():
-    if field not in c:
-      c[field] = value
-  old = c.drops.to_dict() if 'drops' in c else {}
-  for field in REMOVED_DROPS:
-    if field in old:
-      removed_option(field, old.pop(field))
-  rate_by = old.pop('rate_by', RATE_BY)
-  if rate_by != RATE_BY and old.get('rate_weight', 0.0) > 0:
-    raise ConfigError(f'config field drops.rate_by={rate_by!r}: this option was removed; '
-                      f"commit {LAST_WITH['rate_by']} is the last that has it (the rate "
-                      'term is per (ring, depth) cell now)')
-  drops = drop_defaults()
-  drops.update(old)
-  c.drops = drops
-  if 'final_eval' not in c:  # runs from before it ended without one
-    c.final_eval = default().final_eval
-  return c
-
-
-def model_settings(config) -> models.ModelSettings:
-  """What a (possibly old) config says about the networks."""
-  c = upgrade(config)
+def model_settings(c) -> models.ModelSettings:
+  """What a config says about the networks."""
   return models.ModelSettings(model=c.model, latent_dim=int(c.latent_dim),
                               ch_base=int(c.ch_base), ch_max=int(c.ch_max),
                               eqlr=c.eqlr, tau=float(c.tau),
@@ -308,8 +251,7 @@ def model_settings(config) -> models.ModelSettings:
 
 def architecture_diff(old, new) -> dict:
   """{field: (old, new)} of the ARCHITECTURE fields that differ between two
-  configs; fields a config predates take their LEGACY value."""
-  old, new = upgrade(old), upgrade(new)
+  configs."""
   out = {}
   for f in ARCHITECTURE:
     a, b = old.get(f), new.get(f)
@@ -322,43 +264,6 @@ def architecture_diff(old, new) -> dict:
   return out
 
 
-# The study (benchmarks/study.py): baseline vs DUSty-I vs DUSty-II on the
-# simulated HDL-64E scans. 'cpu' fits all three trainings in about 100
-# minutes on 2 CPU cores; 'paper' is the paper's size and schedule.
-STUDY_SCALES = ('cpu', 'paper')
-
-
-def study(model: str = 'dusty1', preset: str = 'authors',
-          scale: str = 'cpu') -> ml_collections.ConfigDict:
-  """The study's config: ``model`` (baseline | dusty1 | dusty2) trained on
-  simulated HDL-64E scans with the point-drop options ``preset`` (a name of
-  drops.PRESETS; 'authors': none, the paper's training) at ``scale``
-  (STUDY_SCALES). experiments/study.py takes the three as
-  ``--config experiments/study.py:MODEL,PRESET,SCALE``."""
-  for what, name, known in (('model', model, models.VARIANTS),
-                            ('preset', preset, drops_lib.PRESETS),
-                            ('scale', scale, STUDY_SCALES)):
-    if name not in known:
-      raise ConfigError(f'unknown study {what} {name!r}; known: {", ".join(known)}')
-  c = default()
-  c.model = model
-  c.drops.update(drops_lib.PRESETS[preset])
-  c.sensor.preset = 'kitti'
-  c.data.dir = ''
-  c.data.num_synthetic = 2000
-  if scale == 'cpu':
-    c.latent_dim = 128
-    c.ch_base = 16
-    c.ch_max = 128
-    c.batch_size = 16
-    c.ema_rampup = 0.05
-    c.num_steps = 2500
-    c.log_every = 50
-    c.image_every = 500
-    c.checkpoint_every = 250
-  return c
-
-
 def save(workdir: str, config):
   """Writes a run's config (atomically)."""
   os.makedirs(workdir, exist_ok=True)
@@ -368,9 +273,29 @@ def save(workdir: str, config):
   os.replace(path + '.tmp', path)
 
 
+# A run config holds default()'s fields and what the trainer adds:
+RUN_FIELDS = ('trained_on',)  # the devices it trained on (trainer._as_trained)
+# Configs of research-era runs (fields since removed or renamed, or missing
+# ones whose default has changed) are not translated:
+RESEARCH_ERA = ('written by a research-era dusty_jax; dusty_jax 0.1.0 is the last version '
+                'that reads it')
+
+
+def _unknown(c, want, prefix='') -> str | None:
+  """The first field of ``c`` that ``want`` (a default config) lacks."""
+  for k, v in c.items():
+    if k not in want:
+      return prefix + k
+    if isinstance(v, dict) and isinstance(want[k], ml_collections.ConfigDict):
+      unknown = _unknown(v, want[k], f'{prefix}{k}.')
+      if unknown:
+        return unknown
+  return None
+
+
 def load(workdir: str) -> ml_collections.ConfigDict:
-  """A run's config, as saved by :func:`save`, older formats translated
-  (:func:`upgrade`)."""
+  """A run's config, as saved by :func:`save`; ConfigError for one of a
+  research-era version."""
   path = os.path.join(workdir, FILE)
   if not os.path.isfile(path):
     raise FileNotFoundError(f'{path}: not a training run directory (no {FILE}); '
@@ -385,4 +310,13 @@ def load(workdir: str) -> ml_collections.ConfigDict:
   if missing:
     raise ValueError(f'{path}: not a dusty_jax run config (no {missing[0]!r} field), so '
                      f'{workdir} is no training run of this library')
-  return upgrade(saved)
+  want = default()
+  # Runs from before after_training ran both steps, as its default does.
+  saved.setdefault('after_training', want.after_training)
+  unknown = _unknown({k: v for k, v in saved.items() if k not in RUN_FIELDS}, want)
+  gap = _missing(saved, want)
+  if unknown or gap:
+    raise ConfigError(f'{path}: ' + (f'field {unknown} is no field of this version'
+                                     if unknown else f'field {gap} is missing') +
+                      f'; {RESEARCH_ERA}')
+  return ml_collections.ConfigDict(saved)

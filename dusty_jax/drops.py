@@ -12,8 +12,9 @@ The terms and setters are pure functions, each tested alone
 (tests/test_drops.py). With ``axis_name`` every tally is the global batch's
 (summed over the devices), so N devices compute what one does.
 
-``PRESETS`` names the options the shipped models trained with; the rest of
-the screened combinations are in benchmarks/research/drops/lineage.py.
+experiments/study.py's ``PRESETS`` name the options the shipped models
+trained with; the rest of the screened combinations are in
+benchmarks/research/drops/lineage.py.
 """
 
 from __future__ import annotations
@@ -33,21 +34,18 @@ from dusty_jax.sensor import SensorSpec
 
 @dataclasses.dataclass(frozen=True)
 class DropOptions:
-  """The options of config ``drops`` (configs.drop_defaults is made of these
-  fields and their defaults, all off).
+  """The options of config ``drops`` that act on training (configs.drop_defaults
+  is made of these fields and their defaults, all off, and ``ring_bias``,
+  which changes the networks: models.ModelSettings owns it).
 
   Attributes:
     mask_bias: the measurability logit's initial bias (the authors' is 0:
       half the pixels dropped at the start); logit(keep rate) starts there.
-    ring_bias: G's pixel measurability gets a learned logit offset per ring
-      (models.Generator.ring_bias), started at the training data's keep
-      rate of that ring (:func:`set_ring_bias`). It changes the networks,
-      so models.ModelSettings carries it too.
     rate_weight: lambda: G's loss + lambda * the squared gap between the
       generated and the real batch's keep rate of each (ring, neighbours'
       depth bin) cell (:func:`ring_depth_rate_penalty`): drops that depend
       on the range within a ring, as a sensor's do. (The rate of the whole
-      batch and of each ring lost to it: configs.LAST_WITH['rate_by'].)
+      batch and of each ring lost to it: benchmarks/research/drops/.)
     rate_head_only: the rate term is taken on the expected keep
       (the measurability, not the sampled mask) of the head applied to the
       trunk's features under stop_gradient, so it trains the measurability
@@ -65,7 +63,6 @@ class DropOptions:
       which loading it applies. Training itself is unchanged.
   """
   mask_bias: float = 0.0
-  ring_bias: bool = False
   rate_weight: float = 0.0
   rate_head_only: bool = False
   mask_detached: bool = False
@@ -81,17 +78,6 @@ class DropOptions:
   def g_needs_mask(self) -> bool:
     """G's loss differentiates the keep-mask itself (not only the scan)."""
     return self.rate_weight > 0
-
-
-# The options the shipped models trained with (configs.study's presets):
-# 'authors' is the paper's training (sim-baseline, sim-dusty1-authors);
-# 'levels' the same with drop levels fitted after it (sim-dusty1); 'dips'
-# trained sim-dusty2, its levels fitted after training too
-# (benchmarks/research/drops/lineage.py: how they were reached).
-LEVELS = dict(depth_levels=True)
-DIPS = dict(mask_bias=1.386, ring_bias=True, rate_weight=100.0, rate_head_only=True,
-            mask_detached=True, dip_weight=10.0, depth_levels=True)
-PRESETS = {'authors': {}, 'levels': LEVELS, 'dips': DIPS}
 
 
 def _psum(x, axis_name):
@@ -134,12 +120,13 @@ def set_ring_bias(g_params, ring_keep, mask_bias: float = 0.0):
 
 def init_biases(options: DropOptions, g_params, ring_keep=None):
   """Fresh G variables with the measurability's starting biases: the global
-  ``mask_bias``, and with ``ring_bias`` one offset per ring from
-  ``ring_keep`` ((H,) the training data's keep rate per ring; without it the
-  offsets stay 0)."""
+  ``mask_bias``, and with ``ring_keep`` ((H,) the training data's keep rate
+  per ring, given where the network has a ring bias:
+  models.ModelSettings.ring_bias) one offset per ring from it (without it
+  the offsets stay 0)."""
   if options.mask_bias:
     g_params = set_mask_bias(g_params, options.mask_bias)
-  if options.ring_bias and ring_keep is not None:
+  if ring_keep is not None:
     g_params = set_ring_bias(g_params, ring_keep, options.mask_bias)
   return g_params
 

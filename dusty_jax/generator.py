@@ -82,10 +82,12 @@ def _from_description(d: dict, source: str):
     raise ValueError(f"{source}: written in generator format {d['format']} by a newer "
                      f'dusty_jax (this one reads up to {FORMAT}); upgrade dusty_jax')
   settings = d.get('settings')
-  if isinstance(settings, dict):  # written before options left (configs.REMOVED_DROPS)
-    settings = dict(settings)
-    for field in sorted(set(settings) & set(configs.REMOVED_DROPS)):
-      configs.removed_option(field, settings.pop(field), f'{source}: settings.')
+  if not isinstance(settings, dict):  # files from before format 1: flat fields
+    raise configs.ConfigError(f'{source}: no model settings; {configs.RESEARCH_ERA}')
+  unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(ModelSettings)})
+  if unknown:
+    raise configs.ConfigError(f'{source}: settings.{unknown[0]} is no model setting of '
+                              f'this version; {configs.RESEARCH_ERA}')
   try:
     return (SensorSpec.from_dict(d['sensor']), ModelSettings(**settings),
             float(d.get('tolerance', 0.0)))
@@ -280,10 +282,6 @@ def load_file(path: str) -> GeneratorParams:
     flat = {k[len('variables/'):]: f[k] for k in f.files if k.startswith('variables/')}
     enc = {k[len('encoder/'):]: f[k] for k in f.files if k.startswith('encoder/')}
     table = jnp.asarray(f['angles'])
-  if 'settings' not in meta:  # files written before format 1: flat fields.
-    meta = {'sensor': meta['sensor'], 'tolerance': meta.get('tolerance', 0.0),
-            'settings': {k: meta[k] for k in ('model', 'latent_dim', 'ch_base',
-                                              'ch_max', 'tau', 'eqlr') if k in meta}}
   sensor, settings, tolerance = _from_description(meta, path)
   params = GeneratorParams(variables=unflatten(flat),
                            angles=table, sensor=sensor, settings=settings,

@@ -303,7 +303,8 @@ class ModelSettings:
   eqlr: str = 'authors'
   tau: float = 1.0
   # Beyond the paper (config drops.ring_bias): the pixel measurability logit
-  # gets one learned offset per ring, i.e. per laser of the sensor.
+  # gets one learned offset per ring, i.e. per laser of the sensor (started
+  # at the training data's keep rate per ring: drops.init_biases).
   ring_bias: bool = False
   # After training (levels.py): one offset per (ring, depth) cell of x_tilde.
   depth_levels: bool = False

@@ -106,8 +106,9 @@ def make_setup(config, sensor: SensorSpec) -> Setup:
 
 def init_state(setup: Setup, key, ring_keep=None) -> TrainState:
   """Fresh networks and optimisers. ``ring_keep``: (H,) the training data's
-  keep rate per ring, where the model has a ring bias (drops.ring_bias): the
-  measurability starts at it (without it, the ring offsets start at 0)."""
+  keep rate per ring, where the model has a ring bias
+  (ModelSettings.ring_bias): the measurability starts at it (without it, the
+  ring offsets start at 0)."""
   kg, kd = jax.random.split(key)
   z = jnp.zeros((1, setup.settings.latent_dim))
   g_params = drops.init_biases(setup.drops, jax.jit(setup.generator.init)(kg, z), ring_keep)

@@ -12,13 +12,18 @@ on 200 scans, drop placement of 32 inverted scans against the simulator's
 truth). The paper-size model and schedule, for GPUs: experiments/synthetic_gpu.py.
 """
 
-from dusty_jax import configs
+import os
+import runpy
+
+# The study's recipe, beside this file.
+study = runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                    'study.py'))['study']
 
 PRESET = 'levels'  # sim-dusty1's recipe: the authors' training, then drop levels
 
 
 def get_config():
-  c = configs.study('dusty1', PRESET, 'cpu')
+  c = study('dusty1', PRESET, 'cpu')
   c.final_eval.num_synthesis = 200
   c.final_eval.num_invert = 32
   return c

@@ -4,11 +4,16 @@ CPU a step of this model takes seconds; experiments/synthetic.py is the job
 that finishes there.
 """
 
-from dusty_jax import configs
+import os
+import runpy
+
+# The study's recipe, beside this file.
+study = runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                    'study.py'))['study']
 
 
 def get_config():
-  c = configs.study('dusty1', 'authors', 'paper')
+  c = study('dusty1', 'authors', 'paper')
   c.final_eval.num_synthesis = 1000
   c.final_eval.num_invert = 64
   return c

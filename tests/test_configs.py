@@ -5,12 +5,13 @@ default stand in for it."""
 
 import json
 import os
+import re
 
 import ml_collections
 import pytest
 
-from dusty_jax import cli, configs, drops
-from train_helpers import tiny_config
+from dusty_jax import cli, configs
+from train_helpers import STUDY, tiny_config
 
 
 EXPERIMENTS = os.path.join(os.path.dirname(__file__), '..', 'experiments')
@@ -19,10 +20,10 @@ EXPERIMENTS = os.path.join(os.path.dirname(__file__), '..', 'experiments')
 def test_every_experiment_config_is_complete():
   configs.validate(tiny_config())
   for model in ('dusty1', 'dusty2'):
-    for preset in drops.PRESETS:
-      for scale in configs.STUDY_SCALES:
-        configs.validate(configs.study(model, preset, scale))
-  configs.validate(configs.study('baseline'))
+    for preset in STUDY['PRESETS']:
+      for scale in STUDY['SCALES']:
+        configs.validate(STUDY['study'](model, preset, scale))
+  configs.validate(STUDY['study']('baseline'))
 
 
 @pytest.mark.parametrize('name', sorted(f[:-3] for f in os.listdir(EXPERIMENTS)
@@ -41,16 +42,17 @@ def test_every_experiment_file_loads_a_valid_config(name):
 def test_the_study_file_takes_model_preset_and_scale(arg, want):
   path = os.path.join(EXPERIMENTS, 'study.py') + (f':{arg}' if arg else '')
   c = cli._load_config(path)
-  assert c.to_dict() == configs.study(*want).to_dict()
+  assert c.to_dict() == STUDY['study'](*want).to_dict()
   assert c.model == want[0] and c.latent_dim == (128 if want[2] == 'cpu' else 512)
-  assert c.drops.to_dict() == dict(configs.drop_defaults().to_dict(), **drops.PRESETS[want[1]])
+  assert c.drops.to_dict() == dict(configs.drop_defaults().to_dict(),
+                                   **STUDY['PRESETS'][want[1]])
 
 
 @pytest.mark.parametrize('args, what', [(('dusty3',), 'model'), (('dusty1', 'channel'), 'preset'),
                                         (('dusty1', 'levels', 'gpu'), 'scale')])
 def test_an_unknown_study_name_lists_the_known_ones(args, what):
   with pytest.raises(configs.ConfigError, match=rf'^unknown study {what} .*; known: \w+, '):
-    configs.study(*args)
+    STUDY['study'](*args)
 
 
 @pytest.mark.parametrize('path', ['r1_every', 'tolerance', 'ema_rampup', 'drops',
@@ -75,26 +77,39 @@ def test_a_config_not_built_on_the_defaults_names_its_first_gap():
     configs.validate(c)
 
 
-def test_an_old_run_read_through_load_is_complete(tmp_path):
-  """configs.load translates an old run's config (configs.upgrade): the
-  fields it predates then hold their legacy values, so the checks and the
-  Setup can read them."""
+def test_a_run_config_of_this_version_loads_as_saved(tmp_path):
+  """configs.load gives a run's config as saved (with trained_on beside
+  default()'s fields); a run from before after_training gets its default,
+  which ran both steps as such runs did."""
   c = tiny_config()
-  for f in ('eqlr', 'augment_style', 'drops'):
-    del c[f]
+  c.after_training = 'final_evaluation'
   configs.save(str(tmp_path), c)
   loaded = configs.load(str(tmp_path))
   configs.validate(loaded)
-  assert (loaded.eqlr, loaded.augment_style) == ('fan_in', 'symmetric')
-  # drop_const left the library: runs that kept ALPHA (-1) load without it.
+  assert loaded.to_dict() == c.to_dict()
   saved = json.loads((tmp_path / configs.FILE).read_text())
-  for value, loads in ((-1.0, True), (-2.0, False)):
-    (tmp_path / configs.FILE).write_text(json.dumps(dict(saved, drop_const=value)))
-    if loads:
-      assert 'drop_const' not in configs.load(str(tmp_path))
-    else:
-      with pytest.raises(configs.ConfigError, match=(
-          r'^config field drop_const=-2\.0: this option was removed; commit '
-          rf"{configs.LAST_WITH['drop_const']} is the last that has it$")):
-        configs.load(str(tmp_path))
-  assert loaded.drops.to_dict() == configs.drop_defaults().to_dict()
+  del saved['after_training']
+  (tmp_path / configs.FILE).write_text(json.dumps(dict(saved, trained_on={'devices': 2})))
+  loaded = configs.load(str(tmp_path))
+  assert loaded.after_training == 'levels,final_evaluation' == configs.default().after_training
+  assert loaded.trained_on.devices == 2
+
+
+@pytest.mark.parametrize('change, says', [
+    (lambda d: d.pop('eqlr'), 'field eqlr is missing'),
+    (lambda d: d['drops'].pop('dip_weight'), 'field drops.dip_weight is missing'),
+    (lambda d: d.update(drop_const=-1.0), 'field drop_const is no field of this version'),
+    (lambda d: d['drops'].update(rate_by='ring_depth'),
+     'field drops.rate_by is no field of this version')])
+def test_a_research_era_run_config_is_one_line(tmp_path, change, says):
+  """A config that lacks a field of this version, or holds one since
+  removed, is of a research-era run: refused in one line naming the field
+  and the last version that reads it, not translated."""
+  configs.save(str(tmp_path), tiny_config())
+  saved = json.loads((tmp_path / configs.FILE).read_text())
+  change(saved)
+  (tmp_path / configs.FILE).write_text(json.dumps(saved))
+  with pytest.raises(configs.ConfigError, match=(
+      rf'^{re.escape(str(tmp_path / configs.FILE))}: {says}; written by a research-era '
+      r'dusty_jax; dusty_jax 0\.1\.0 is the last version that reads it$')):
+    configs.load(str(tmp_path))

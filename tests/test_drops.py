@@ -14,7 +14,7 @@ import pytest
 from dusty_jax import codec, configs, drops, generator, parallel, pretrained, trainer
 from dusty_jax.codec import ALPHA
 from dusty_jax.sensor import tiny_sensor
-from train_helpers import tiny_config
+from train_helpers import STUDY, tiny_config
 
 
 def _scans_and_keep(b=8, h=16, w=64, seed=0, rate=0.3):
@@ -244,85 +244,45 @@ def test_baseline_refuses_mask_options(field, value):
                                                  ('sim-dusty2', 'dusty2', 'dips')])
 def test_the_presets_are_what_the_shipped_models_trained_with(name, model, preset):
   """Each shipped model records its drops options (generator.export's
-  ``training``) and the config that trained it; that config (or, where it
-  has left experiments/, the one that trains the same today) gives the
-  model's preset, and the recorded options read as a config
-  (configs.upgrade: removed options, off there, leave) are the preset's."""
+  ``training``) and the experiments/ config that trained it: that config
+  exists, gives the model's preset, and the recorded options are its
+  drops group as this version writes it."""
   training = pretrained.describe(name)['training']
-  trained = training['drops']
   here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-  if 'config_today' in training:
-    assert training['config_today'] == f'experiments/study.py:{model},{preset},cpu'
-    assert not os.path.exists(os.path.join(here, training['config']))
-  path, _, arg = training.get('config_today', training['config']).partition(':')
+  path, _, arg = training['config'].partition(':')
+  assert os.path.isfile(os.path.join(here, path)), training['config']
   spec = importlib.util.spec_from_file_location('shipped_config', os.path.join(here, path))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   config = module.get_config(arg) if arg else module.get_config()
   assert config.model == model
-  assert config.drops.to_dict() == configs.study(model, preset).drops.to_dict()
-  old = configs.study(model).to_dict()
-  old['drops'] = trained
-  assert configs.upgrade(old).drops.to_dict() == configs.study(model, preset).drops.to_dict()
-  assert set(trained) >= set(drops.PRESETS[preset])
+  assert config.drops.to_dict() == STUDY['study'](model, preset).drops.to_dict()
+  assert training['drops'] == config.drops.to_dict()
 
 
-def test_a_removed_option_loads_where_it_was_off_and_is_refused_where_on(tmp_path):
-  c = tiny_config()
-  configs.save(str(tmp_path), c)
-  path = tmp_path / configs.FILE
-  saved = json.loads(path.read_text())
-  saved['drops'].update(configs.REMOVED_DROPS)  # a run from f597033, all off
-  path.write_text(json.dumps(saved))
-  loaded = configs.load(str(tmp_path))
-  configs.validate(loaded)
-  assert loaded.drops.to_dict() == c.drops.to_dict()
-  for field, value, last in (('mask_channel', 1.0, 'f597033'), ('keep_drops', True, 'f597033'),
-                             ('mask_lr', 0.1, 'f597033'), ('range_slope', True, 'f597033'),
-                             ('far_weight', 100.0, 'ca3bdad'), ('rate_skip_far', True, 'ca3bdad')):
-    path.write_text(json.dumps(dict(saved, drops=dict(saved['drops'], **{field: value}))))
-    with pytest.raises(configs.ConfigError, match=(
-        rf'^config field drops\.{field}={value!r}: this option was removed; '
-        rf'commit {last} is the last that has it$')):
-      configs.load(str(tmp_path))
-  # rate_by left with its cells the rate term: its other values load where
-  # no rate term was on, and are refused where one was.
-  for by, weight, loads in (('image', 0.0, True), ('ring_depth', 100.0, True),
-                            ('ring', 10.0, False), ('image', 1.0, False)):
-    drops_ = dict(saved['drops'], rate_by=by, rate_weight=weight)
-    path.write_text(json.dumps(dict(saved, drops=drops_)))
-    if loads:
-      assert configs.load(str(tmp_path)).drops.rate_weight == weight
-    else:
-      with pytest.raises(configs.ConfigError, match=(
-          rf"^config field drops\.rate_by='{by}': this option was removed; commit "
-          rf"{configs.LAST_WITH['rate_by']} is the last that has it \(the rate term")):
-        configs.load(str(tmp_path))
-
-
-def test_a_generator_description_with_range_slope_off_still_loads(tiny, tmp_path):
+def test_a_generator_description_of_the_research_era_is_one_line(tiny, tmp_path):
+  """A generator.json whose settings hold an option since removed (as those
+  of the research era do) is refused, naming it and the last version that
+  reads it; this version's own loads."""
   settings = configs.model_settings(tiny_config())
   generator.save_spec(str(tmp_path), tiny, settings, tiny.nominal_angles())
+  assert generator.read_spec(str(tmp_path))[1] == settings
   path = tmp_path / generator.SPEC_FILE
   d = json.loads(path.read_text())
-  d['settings']['range_slope'] = False  # as generator.json files from f597033 have
+  d['settings']['range_slope'] = False
   path.write_text(json.dumps(d))
-  assert generator.read_spec(str(tmp_path))[1] == settings
-  d['settings']['range_slope'] = True
-  path.write_text(json.dumps(d))
-  with pytest.raises(configs.ConfigError, match=r'settings\.range_slope=True: .*removed'):
+  with pytest.raises(configs.ConfigError, match=(
+      r'settings\.range_slope is no model setting of this version; written by a '
+      r'research-era dusty_jax; dusty_jax 0\.1\.0 is the last version that reads it$')):
     generator.read_spec(str(tmp_path))
 
 
 def test_only_the_ring_bias_changes_the_architecture():
   a, b = tiny_config(), tiny_config()
-  b.drops.update(drops.DIPS, ring_bias=False)
+  b.drops.update(STUDY['DIPS'], ring_bias=False)
   assert configs.architecture_diff(a, b) == {}
   b.drops.ring_bias = True
   assert 'drops' in configs.architecture_diff(a, b)
-  old = tiny_config()
-  del old['drops']  # a run from before the options: all off.
-  assert configs.architecture_diff(old, a) == {}
 
 
 def test_the_dip_term_fills_the_generated_dips():

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import checkpoint, codec, encoder, encoder_trainer, generator, inversion, sampling
+from dusty_jax import (checkpoint, codec, configs, encoder, encoder_trainer, generator, inversion,
+                       sampling)
 from dusty_jax.codec import ALPHA
 
 
@@ -126,6 +127,9 @@ def test_loss_terms_match_their_definition(trained):
 
 
 def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):
+  """Format 2 round trip; format 1 (no encoder) loads; a file from before
+  format 1 (flat fields, the research era's) is one line naming the last
+  version that reads it."""
   params, _ = dusty_jax.load_checkpoint(trained)
   path = generator.export(params, str(tmp_path / 'g.npz'))
   back = generator.load_file(path)
@@ -143,6 +147,13 @@ def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):
   np.savez(tmp_path / 'old.npz', meta=np.asarray(json.dumps(meta)), **arrs)
   old = generator.load_file(str(tmp_path / 'old.npz'))
   assert old.encoder is None
+  flat = dict({k: v for k, v in meta.items() if k not in ('settings', 'format')},
+              **meta['settings'])
+  np.savez(tmp_path / 'older.npz', meta=np.asarray(json.dumps(flat)), **arrs)
+  with pytest.raises(configs.ConfigError, match=(
+      r'older\.npz: no model settings; written by a research-era dusty_jax; dusty_jax '
+      r'0\.1\.0 is the last version that reads it$')):
+    generator.load_file(str(tmp_path / 'older.npz'))
   np.testing.assert_array_equal(old.angles, back.angles)
 
 

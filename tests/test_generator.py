@@ -155,8 +155,6 @@ def test_model_settings_is_one_frozen_value(tiny):
                                    'fan_in', 0.5)
   with pytest.raises(Exception):  # frozen
     s.model = 'baseline'
-  del c.eqlr  # a config from before the field: its legacy value
-  assert configs.model_settings(c).eqlr == 'fan_in'
   for bad, msg in [(dict(model='dusty3'), 'unknown model'), (dict(eqlr='x'), 'unknown eqlr'),
                    (dict(latent_dim=0), 'latent_dim=0'), (dict(tau=0.0), 'tau=0.0')]:
     with pytest.raises(ValueError, match=msg):

@@ -417,3 +417,20 @@ def test_every_research_readme_opens_with_a_one_page_summary():
   bad = {os.path.relpath(p, REPO): problems for p in readmes
          if (problems := _summary_problems(p))}
   assert not bad, bad
+
+
+# A commit hash: 7 to 40 hex digits with a letter and a digit among them.
+COMMIT = re.compile(r'\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b')
+
+
+def test_the_commit_check_sees_hashes():
+  assert COMMIT.findall("commit f597033 is the last; 0x1f 'deadbeef' 1234567 dusty1_0025000000") \
+      == ['f597033']
+
+
+def test_the_library_names_no_commit():
+  """What the library reads and refuses is said in its own terms (a field,
+  a version), not by a commit of its history: those belong to the record."""
+  bad = {os.path.relpath(p, REPO): COMMIT.findall(open(p).read())
+         for p in _python_files('dusty_jax') if COMMIT.search(open(p).read())}
+  assert not bad, f'commit hashes in the library: {bad}'

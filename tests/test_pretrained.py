@@ -85,8 +85,7 @@ def test_shipped_sim_dusty1_keeps_and_places_its_drops():
   from dusty_jax.metrics import ground_truth
   training = pretrained.describe('sim-dusty1')['training']
   assert training['config'] == 'experiments/synthetic.py'
-  # (Read as a run's config is: fields removed since, where off, drop out.)
-  trained = configs.upgrade({'drops': training['drops']}).drops.to_dict()
+  trained = training['drops']
   assert trained == dict(configs.drop_defaults().to_dict(), depth_levels=True)
   assert 'train_encoder' in training['encoder']
   assert pretrained.describe('sim-dusty1-authors').get('training') is None
@@ -133,7 +132,7 @@ def test_shipped_sim_dusty2_keeps_and_places_its_drops():
   from dusty_jax.data import synthetic
   from dusty_jax.metrics import ground_truth
   training = pretrained.describe('sim-dusty2')['training']
-  assert training['config'] == 'experiments/study_dusty2_dipdrops.py'
+  assert training['config'] == 'experiments/study.py:dusty2,dips,cpu'
   assert training['drops']['dip_weight'] > 0 and training['drops']['depth_levels']
   params = dusty_jax.load_pretrained('sim-dusty2')
   assert params.model == 'dusty2' and params.encoder is None

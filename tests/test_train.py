@@ -18,7 +18,7 @@ import dusty_jax
 from dusty_jax import configs, drops, levels, parallel, trainer, writers
 from conftest import FAST_COMPILE
 from event_files import read_events, scalars
-from train_helpers import run_steps, tiny_config
+from train_helpers import STUDY, run_steps, tiny_config
 
 HERE = os.path.dirname(__file__)
 
@@ -57,7 +57,7 @@ def test_rate_terms_are_the_global_batch_s_on_four_devices():
   # own rate, so per-device rates would differ from the batch's. Two steps,
   # with sim-dusty2's options (the rate term weighted up).
   config = tiny_config()
-  config.drops.update(drops.DIPS, rate_weight=1e3)
+  config.drops.update(STUDY['DIPS'], rate_weight=1e3)
   configs.validate(config)
   rates = np.repeat([0.05, 0.3, 0.6, 0.9], config.batch_size // 4)
   one = run_steps(2, devices=jax.devices()[:1], config=config, drop_rates=rates)

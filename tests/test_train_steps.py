@@ -8,7 +8,7 @@ import pytest
 
 from dusty_jax import augment, codec, drops, losses, trainer
 from dusty_jax.sensor import tiny_sensor
-from train_helpers import tiny_config
+from train_helpers import STUDY, tiny_config
 
 
 def _setup(**overrides):
@@ -151,7 +151,7 @@ def test_g_step_with_drops_terms_adds_them_to_the_gradient_not_the_loss():
   Fake's scan, mask and detached head; the reported loss is the
   adversarial one alone."""
   config = tiny_config()
-  config.drops.update(drops.DIPS)
+  config.drops.update(STUDY['DIPS'])
   setup = trainer.make_setup(config, tiny_sensor(config.sensor.height, config.sensor.width))
   state = trainer.init_state(setup, jax.random.key(0), np.linspace(0.5, 0.9, 16))
   assert setup.drops.rate_head_only and setup.drops.dip_weight > 0

@@ -1,4 +1,8 @@
-"""A tiny deterministic training run shared by the parallelism tests."""
+"""A tiny deterministic training run shared by the parallelism tests, and
+the experiment files as the tests read them."""
+
+import os
+import runpy
 
 import jax
 import numpy as np
@@ -6,17 +10,20 @@ import numpy as np
 from dusty_jax import parallel, trainer
 from dusty_jax.sensor import tiny_sensor
 
-import importlib.util
-import os
+EXPERIMENTS = os.path.join(os.path.dirname(__file__), '..', 'experiments')
 
-_SPEC = importlib.util.spec_from_file_location(
-    'smoke', os.path.join(os.path.dirname(__file__), '..', 'experiments', 'smoke.py'))
-_SMOKE = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(_SMOKE)
+
+def experiment(name: str) -> dict:
+  """The globals of experiments/NAME.py."""
+  return runpy.run_path(os.path.join(EXPERIMENTS, f'{name}.py'))
+
+
+# The study's recipe: study(model, preset, scale), PRESETS, SCALES, DIPS, ...
+STUDY = experiment('study')
 
 
 def tiny_config(**overrides):
-  c = _SMOKE.get_config()
+  c = experiment('smoke')['get_config']()
   c.r1_every = 1
   for k, v in overrides.items():
     setattr(c, k, v)

@@ -45,24 +45,14 @@ def with_encoder() -> list[str]:
   return [n for n in available() if 'encoder' in generator.read_meta(path_of(n))]
 
 
-# Configs the shipped models name that have since left experiments/, and
-# the config that trains the same today (tests/test_drops.py checks that
-# its drops options are the ones the model records).
-CONFIGS_TODAY = {'experiments/study_dusty2_dipdrops.py': 'experiments/study.py:dusty2,dips,cpu'}
-
-
 def describe(name: str) -> dict:
   """What the shipped ``name`` says of itself: sensor, model settings,
-  tolerance, source and how it was trained (``training``; where the config
-  it names has left experiments/, ``training['config_today']`` is the one
-  that trains the same)."""
+  tolerance, source and, for sim-dusty1 and sim-dusty2, how it was trained
+  (``training``: the experiments/ config that trains it, its drops options,
+  ...)."""
   if not os.path.isfile(path_of(name)):
     raise ValueError(f'no pretrained model {name!r}; available: {available()}')
-  meta = generator.read_meta(path_of(name))
-  training = meta.get('training')
-  if isinstance(training, dict) and training.get('config') in CONFIGS_TODAY:
-    meta['training'] = dict(training, config_today=CONFIGS_TODAY[training['config']])
-  return meta
+  return generator.read_meta(path_of(name))
 
 
 def export(params, name: str, source: str = '', directory: str = HERE,
