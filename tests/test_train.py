@@ -10,7 +10,6 @@ import subprocess
 import sys
 
 import jax
-import ml_collections
 import numpy as np
 import pytest
 
@@ -327,11 +326,6 @@ def test_resume_with_another_architecture_is_refused_untouched(smoke_run, tmp_pa
   with pytest.raises(configs.ConfigError, match=r'ch_base: run has 8, config has 4'):
     trainer.train_and_evaluate(other, str(copy), log=lambda m: None)
   assert (copy / 'config.json').read_bytes() == before
-  # A config older than the eqlr field reads as its legacy value, fan_in.
-  old = json.loads(before)
-  old.pop('eqlr')
-  diff = configs.architecture_diff(ml_collections.ConfigDict(old), config)
-  assert diff == {'eqlr': ('fan_in', 'authors')}
 
 
 def test_cli_config_error_is_one_line(tmp_path):
