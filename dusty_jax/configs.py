@@ -275,8 +275,12 @@ def save(workdir: str, config):
 
 # A run config holds default()'s fields and what the trainer adds:
 RUN_FIELDS = ('trained_on',)  # the devices it trained on (trainer._as_trained)
-# Configs of research-era runs (fields since removed or renamed, or missing
-# ones whose default has changed) are not translated:
+# A field added to default() takes, in a run from before it, its default,
+# which does what such runs did (the rule for adding one). A run config
+# holding a field since removed, or lacking one whose default changed when
+# it came (eqlr, augment_style: runs without them used the other value), is
+# a research-era run: not translated.
+CHANGED_DEFAULTS = ('eqlr', 'augment_style')
 RESEARCH_ERA = ('written by a research-era dusty_jax; dusty_jax 0.1.0 is the last version '
                 'that reads it')
 
@@ -293,9 +297,20 @@ def _unknown(c, want, prefix='') -> str | None:
   return None
 
 
+def _fill(c: dict, want: dict) -> dict:
+  """``c`` with the fields of ``want`` it lacks, groups field by field."""
+  out = dict(c)
+  for k, v in want.items():
+    if k not in out:
+      out[k] = v
+    elif isinstance(v, dict) and isinstance(out[k], dict):
+      out[k] = _fill(out[k], v)
+  return out
+
+
 def load(workdir: str) -> ml_collections.ConfigDict:
-  """A run's config, as saved by :func:`save`; ConfigError for one of a
-  research-era version."""
+  """A run's config, as saved by :func:`save` (fields added since take their
+  defaults); ConfigError for one of a research-era version."""
   path = os.path.join(workdir, FILE)
   if not os.path.isfile(path):
     raise FileNotFoundError(f'{path}: not a training run directory (no {FILE}); '
@@ -311,12 +326,10 @@ def load(workdir: str) -> ml_collections.ConfigDict:
     raise ValueError(f'{path}: not a dusty_jax run config (no {missing[0]!r} field), so '
                      f'{workdir} is no training run of this library')
   want = default()
-  # Runs from before after_training ran both steps, as its default does.
-  saved.setdefault('after_training', want.after_training)
   unknown = _unknown({k: v for k, v in saved.items() if k not in RUN_FIELDS}, want)
-  gap = _missing(saved, want)
+  gap = next((f for f in CHANGED_DEFAULTS if f not in saved), None)
   if unknown or gap:
     raise ConfigError(f'{path}: ' + (f'field {unknown} is no field of this version'
                                      if unknown else f'field {gap} is missing') +
                       f'; {RESEARCH_ERA}')
-  return ml_collections.ConfigDict(saved)
+  return ml_collections.ConfigDict(_fill(saved, want.to_dict()))

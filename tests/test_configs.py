@@ -79,8 +79,9 @@ def test_a_config_not_built_on_the_defaults_names_its_first_gap():
 
 def test_a_run_config_of_this_version_loads_as_saved(tmp_path):
   """configs.load gives a run's config as saved (with trained_on beside
-  default()'s fields); a run from before after_training gets its default,
-  which ran both steps as such runs did."""
+  default()'s fields); fields added since it was written take their
+  defaults, which do what such runs did (after_training: both steps;
+  data.memory_mb, data.allow_changed)."""
   c = tiny_config()
   c.after_training = 'final_evaluation'
   configs.save(str(tmp_path), c)
@@ -88,23 +89,26 @@ def test_a_run_config_of_this_version_loads_as_saved(tmp_path):
   configs.validate(loaded)
   assert loaded.to_dict() == c.to_dict()
   saved = json.loads((tmp_path / configs.FILE).read_text())
-  del saved['after_training']
+  del saved['after_training'], saved['data']['memory_mb'], saved['data']['allow_changed']
   (tmp_path / configs.FILE).write_text(json.dumps(dict(saved, trained_on={'devices': 2})))
   loaded = configs.load(str(tmp_path))
+  configs.validate(loaded)
   assert loaded.after_training == 'levels,final_evaluation' == configs.default().after_training
+  assert loaded.data.memory_mb == configs.default().data.memory_mb
+  assert loaded.data.allow_changed is False and loaded.data.dir == c.data.dir
   assert loaded.trained_on.devices == 2
 
 
 @pytest.mark.parametrize('change, says', [
     (lambda d: d.pop('eqlr'), 'field eqlr is missing'),
-    (lambda d: d['drops'].pop('dip_weight'), 'field drops.dip_weight is missing'),
+    (lambda d: d.pop('augment_style'), 'field augment_style is missing'),
     (lambda d: d.update(drop_const=-1.0), 'field drop_const is no field of this version'),
     (lambda d: d['drops'].update(rate_by='ring_depth'),
      'field drops.rate_by is no field of this version')])
 def test_a_research_era_run_config_is_one_line(tmp_path, change, says):
-  """A config that lacks a field of this version, or holds one since
-  removed, is of a research-era run: refused in one line naming the field
-  and the last version that reads it, not translated."""
+  """A config that holds a field since removed, or lacks one whose default
+  changed when it came, is of a research-era run: refused in one line naming
+  the field and the last version that reads it, not translated."""
   configs.save(str(tmp_path), tiny_config())
   saved = json.loads((tmp_path / configs.FILE).read_text())
   change(saved)
