@@ -274,7 +274,9 @@ def save(workdir: str, config):
 
 
 # A run config holds default()'s fields and what the trainer adds:
-RUN_FIELDS = ('trained_on',)  # the devices it trained on (trainer._as_trained)
+# What a run adds to its config: the devices it trained on
+# (trainer._as_trained); a converted .pth's source and step (authors.load).
+RUN_FIELDS = ('trained_on', 'source_checkpoint', 'source_step')
 # A field added to default() takes, in a run from before it, its default,
 # which does what such runs did (the rule for adding one). A run config
 # holding a field since removed, or lacking one whose default changed when
