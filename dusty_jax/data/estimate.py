@@ -158,7 +158,6 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
     raise DataError(f'estimate: only {len(p)} returns; a sweep has thousands')
   sin_el, inv_r = p[:, 2] / r, 1.0 / r
   azimuth = np.arctan2(p[:, 1], p[:, 0])
-  inferred = []
   if use_ring:
     ids = np.concatenate([a[k] for a, k in zip(rings, keep)]).astype(np.int64)
     uniq, beam = np.unique(ids, return_inverse=True)

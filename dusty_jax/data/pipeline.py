@@ -39,7 +39,7 @@ def spec_key(sensor: SensorSpec) -> str:
   """'' for a preset as it is (the cache names of earlier versions), else
   a hash of the spec: simulated scans are cached by the spec that rendered
   them, not by its name."""
-  if sensor_lib.PRESETS.get(sensor.name) == sensor or sensor.name.startswith('tiny'):
+  if sensor_lib.PRESETS.get(sensor.name) == sensor:
     return ''
   digest = hashlib.sha1(json.dumps(sensor.to_dict(), sort_keys=True).encode())
   return '_' + digest.hexdigest()[:10]
