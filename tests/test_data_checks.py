@@ -1,4 +1,4 @@
-"""The data a training reads (issue 55): what it is (identity.py), how it is
+"""The data a training reads: what it is (identity.py), how it is
 read (into memory, or FileRows), bad values refused before training, and a
 split that changes under a run or between its launches: one line, nothing
 trained on the changed bytes, the last good checkpoint kept."""

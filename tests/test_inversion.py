@@ -388,7 +388,7 @@ def test_objective_and_a_replaced_loss(gen):
 
 @pytest.mark.parametrize('lr', [float('nan'), float('inf'), 0.0, -0.1])
 def test_a_learning_rate_that_cannot_work_is_refused(gen, lr):
-  """Item 9: every latent used to end at the all-ones point, silently."""
+  """Without the check every latent ended at the all-ones point, silently."""
   t = _targets(gen, n=1)[0]
   with pytest.raises(ValueError, match=r'lr=.*must be a finite number > 0'):
     inversion.invert(gen, t, num_steps=2, lr=lr)

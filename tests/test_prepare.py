@@ -133,7 +133,7 @@ def test_prepare_removes_stale_splits_and_skips_junk(kitti, tmp_path):
 
 
 def test_prepare_creates_nothing_before_its_inputs_check(kitti, tmp_path):
-  """Item 12: no empty --out from a root without sequences/ or scans."""
+  """No empty --out from a root without sequences/ or scans."""
   out = tmp_path / 'out'
   (tmp_path / 'nosequences').mkdir()
   with pytest.raises(FileNotFoundError, match='sequences: no such directory'):
@@ -150,7 +150,7 @@ def test_prepare_creates_nothing_before_its_inputs_check(kitti, tmp_path):
 
 
 def test_meta_describes_every_array_beside_it(kitti, tmp_path):
-  """Item 12: preparing one split keeps the others in meta.json."""
+  """Preparing one split keeps the others in meta.json."""
   root, out = str(tmp_path / 'kitti'), str(tmp_path / 'out')
   _kitti_tree(root, kitti, seqs=(('00', 2), ('08', 1), ('11', 3)))
   prepare.prepare('kitti', root, out, log=lambda m: None)
@@ -171,7 +171,7 @@ def test_meta_describes_every_array_beside_it(kitti, tmp_path):
 
 
 def test_splits_are_written_scan_by_scan(kitti, tmp_path):
-  """Item 14: the array is the stacked scans, and the Python heap's peak
+  """The array is the stacked scans, and the Python heap's peak
   while preparing does not grow with the number of scans (the old code
   held the split, then stacked it: 2 x 64 KB more per scan)."""
   import tracemalloc

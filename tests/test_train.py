@@ -429,7 +429,7 @@ def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, t
 
 
 def test_nan_before_any_checkpoint_says_a_rerun_starts_afresh(smoke_run, tmp_path):
-  """Item 7: no checkpoint exists yet, so none is 'kept'."""
+  """No checkpoint exists yet, so none is 'kept'."""
   config, _, _ = smoke_run
   config = config.copy_and_resolve_references()
   config.num_steps, config.checkpoint_every, config.log_every = 6, 5, 1
@@ -441,7 +441,7 @@ def test_nan_before_any_checkpoint_says_a_rerun_starts_afresh(smoke_run, tmp_pat
 
 
 def test_a_run_file_given_for_a_checkpoint_names_its_directory(smoke_run):
-  """Item 8: config.json is not 'not a torch.save checkpoint'."""
+  """config.json is not 'not a torch.save checkpoint'."""
   _, workdir, _ = smoke_run
   for name, what in (('config.json', 'config'), ('generator.json', 'generator description')):
     with pytest.raises(ValueError, match=(
