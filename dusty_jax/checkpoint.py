@@ -7,11 +7,10 @@ and trainer.py's business.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import errno
 import gc
-import inspect
+import json
 import logging
 import os
 import re
@@ -65,71 +64,42 @@ class _DropAsyncioReports(logging.Filter):
     return False
 
 
-class _DrainingLoop(asyncio.SelectorEventLoop):
-  """An event loop that, before closing, awaits the tasks still pending on
-  it. orbax runs each restore in a fresh loop and closes it as soon as one
-  read fails, leaving the other reads running: their TensorStore callbacks
-  then hit a closed loop ('Event loop is closed', once per array)."""
-
-  def close(self):
-    if not self.is_running() and not self.is_closed():
-      pending = asyncio.all_tasks(self)
-      if pending:
-        self.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-    super().close()
-
-
-class _DrainingPolicy(asyncio.DefaultEventLoopPolicy):
-  _loop_factory = _DrainingLoop
-
-
 _quiet_lock = threading.Lock()
 _quiet_depth = 0
-_quiet_saved = {}
-
-
-def _unraisable(hook):
-  def drop_abandoned(unraisable):
-    # 'Exception ignored in: <coroutine object _read_array_index_and_device_put>'
-    # and 'Event loop is closed' from reads orbax abandoned.
-    if inspect.iscoroutine(unraisable.object) or (
-        isinstance(unraisable.exc_value, RuntimeError)
-        and 'Event loop is closed' in str(unraisable.exc_value)):
-      return
-    hook(unraisable)
-  return drop_abandoned
+_FILTERS = {'absl': _DropOrbaxRecords(), 'asyncio': _DropAsyncioReports()}
 
 
 @contextlib.contextmanager
 def quiet():
-  """Inside: orbax's absl log records are dropped, the event loops orbax
-  makes await what they leave pending before they close, and asyncio's and
-  the interpreter's reports about abandoned reads are dropped. Everything
-  else (the caller's own logs, other libraries) is untouched, and all is
-  restored on leaving. Re-entrant; the command lines hold it for a whole
-  run, since orbax saves in background threads."""
+  """Inside: orbax's absl log records and asyncio's reports about the reads
+  and writes a failed restore or save abandons are dropped (filters on those
+  two loggers); everything else (the caller's own logs, other libraries) is
+  untouched, and the filters go on leaving. Re-entrant; the command lines
+  hold it for a whole run, since orbax saves in background threads.
+
+  Not silenced: when a restore or save fails half-way, orbax closes its
+  event loop while TensorStore reads or writes still run, and each may print
+  'RuntimeError: Event loop is closed' from its own thread (the interpreter's
+  hook for unraisable errors, which a library leaves alone). So orbax is not
+  started on what is known to fail: a step whose files differ in size from
+  its manifest, a save the disk has no room for. A disk filled by another
+  writer during a save, or a step damaged without a size change or without a
+  manifest, can still print these reports before the error."""
   global _quiet_depth
   with _quiet_lock:
     _quiet_depth += 1
     if _quiet_depth == 1:
-      _quiet_saved['filters'] = (_DropOrbaxRecords(), _DropAsyncioReports())
-      logging.getLogger('absl').addFilter(_quiet_saved['filters'][0])
-      logging.getLogger('asyncio').addFilter(_quiet_saved['filters'][1])
-      _quiet_saved['policy'] = asyncio.get_event_loop_policy()
-      asyncio.set_event_loop_policy(_DrainingPolicy())
-      _quiet_saved['hook'] = sys.unraisablehook
-      sys.unraisablehook = _unraisable(sys.unraisablehook)
+      for name, f in _FILTERS.items():
+        logging.getLogger(name).addFilter(f)
   try:
     yield
   finally:
     with _quiet_lock:
       _quiet_depth -= 1
       if _quiet_depth == 0:
-        gc.collect()  # abandoned coroutines and tasks report now, while quiet.
-        logging.getLogger('absl').removeFilter(_quiet_saved['filters'][0])
-        logging.getLogger('asyncio').removeFilter(_quiet_saved['filters'][1])
-        asyncio.set_event_loop_policy(_quiet_saved['policy'])
-        sys.unraisablehook = _quiet_saved['hook']
+        gc.collect()  # abandoned tasks report now, while quiet.
+        for name, f in _FILTERS.items():
+          logging.getLogger(name).removeFilter(f)
 
 
 # The folder of a save in progress: STEP.orbax-checkpoint-tmp[-TIMESTAMP].
@@ -173,9 +143,20 @@ def saved_steps(workdir: str) -> list[int]:
 def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
   """Starts saving ``state`` as ``step`` (in the background). A failure of
   the previous save surfaces here, as a CheckpointError saying which steps
-  are intact."""
+  are intact; so does a disk without room for one more step, found before
+  orbax starts writing (checked only in a single-process run, where no peer
+  can be left waiting for a save that one process refused)."""
   with quiet(), _write_errors(mngr, step), _interrupt_after():
-    return mngr.save(step, args=ocp.args.StandardSave(state), force=force)
+    if not (force or mngr.should_save(step)):
+      return False
+    mngr.wait_until_finished()  # as orbax's save does first
+    _list_finished(mngr)
+    if jax.process_count() == 1:
+      _check_room(str(mngr.directory), state)
+    started = mngr.save(step, args=ocp.args.StandardSave(state), force=force)
+    if started:
+      _unlisted.setdefault(str(mngr.directory), set()).add(step)
+    return started
 
 
 @contextlib.contextmanager
@@ -203,6 +184,56 @@ def wait(mngr: ocp.CheckpointManager):
   """Waits for the save in progress; its failure is a CheckpointError."""
   with quiet(), _write_errors(mngr, None):
     mngr.wait_until_finished()
+    _list_finished(mngr)
+
+
+# What a save needs beyond the newest step's size on disk (steps differ a
+# little in how orbax packs their arrays into files).
+ROOM_MARGIN = 1.2
+MANIFEST = 'dusty_files.json'  # in a step's folder: {file: size} when saved
+_unlisted = {}  # {checkpoint directory: steps this process started saving}
+
+
+def _check_room(directory: str, state):
+  """Raises ENOSPC unless the disk has room for one more step like the
+  newest saved one (with none, for ``state``'s arrays), with a margin: a
+  save that runs out of room half-way leaves TensorStore writes running on
+  an event loop orbax has closed, each printing a traceback."""
+  steps = ocp.utils.checkpoint_steps(directory)
+  if steps:
+    newest = os.path.join(directory, str(max(steps)))
+    need = sum(os.stat(os.path.join(d, f)).st_blocks * 512
+               for d, _, fs in os.walk(newest) for f in fs)
+  else:
+    need = sum(getattr(x, 'nbytes', 0) for x in jax.tree.leaves(state))
+  if shutil.disk_usage(directory).free < need * ROOM_MARGIN:
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def _sizes(step_dir: str) -> dict:
+  """{path relative to ``step_dir``: size in bytes} of its files but ours."""
+  paths = [os.path.join(d, f) for d, _, fs in os.walk(step_dir) for f in fs
+           if not f.startswith(MANIFEST)]
+  return {os.path.relpath(p, step_dir): os.path.getsize(p) for p in paths}
+
+
+def _list_finished(mngr):
+  """Writes the manifest of each step this process started saving in
+  ``mngr``'s directory that has committed since (on process 0, for all):
+  a restore then checks the files' sizes before orbax reads them."""
+  directory = str(mngr.directory)
+  steps = _unlisted.pop(directory, set())
+  if jax.process_index() != 0:
+    return
+  for step in steps & set(ocp.utils.checkpoint_steps(directory)):
+    path = os.path.join(directory, str(step), MANIFEST)
+    try:
+      with open(path + '.tmp', 'w') as f:
+        json.dump(_sizes(os.path.dirname(path)), f)
+      os.replace(path + '.tmp', path)
+    except OSError:  # no manifest: orbax reads the step unchecked, as before.
+      with contextlib.suppress(OSError):
+        os.remove(path + '.tmp')
 
 
 def _no_space(e: BaseException) -> bool:
@@ -361,38 +392,68 @@ def _damage(step_dir: str, e: Exception) -> str:
   return f'unreadable: {_reason(e)}'
 
 
+def _unlike_saved(step_dir: str) -> str | None:
+  """Why a step's files differ from its manifest, or None when they match
+  or it has none (a step saved before manifests, or cut off before its
+  manifest was written)."""
+  try:
+    with open(os.path.join(step_dir, MANIFEST)) as f:
+      saved = json.load(f)
+  except (OSError, ValueError):
+    return None
+  now = _sizes(step_dir)
+  if not now:
+    return 'empty step directory'
+  bad = sorted(n for n in saved if now.get(n) != saved[n])
+  if not bad:
+    return None
+  if any(os.path.basename(n) in ('_CHECKPOINT_METADATA', '_METADATA') for n in bad
+         if n not in now):
+    return 'metadata missing'
+  name, more = bad[0], f', and {len(bad) - 1} more files' if len(bad) > 1 else ''
+  if name not in now:
+    return f'data file missing: {name}{more}'
+  what = 'truncated' if now[name] < saved[name] else 'damaged'
+  return f'data file {what}: {name} has {now[name]} bytes, {saved[name]} when saved{more}'
+
+
 def _newest_that_restores(directory, steps, attempt, log, handlers=None,
                           on_damaged=None, fallback: bool = True):
   """(attempt(reader, step), step) for the newest of ``steps`` it succeeds on.
 
   A step that fails is reported and, with ``fallback``, the previous one is
   tried (``on_damaged(step)`` first); without, the failure is a ValueError.
-  A MissingItemError is the caller's mistake, not damage: it propagates.
+  A step whose files differ from its manifest fails without orbax reading
+  it. A MissingItemError is the caller's mistake, not damage: it propagates.
   """
   skipped = False
   for step in sorted(steps, reverse=True):
-    with quiet():
-      # A fresh reader per attempt: a failed restore leaves a manager's item
-      # handlers in a state where the next restore fails too.
-      reader = ocp.CheckpointManager(directory, options=READ_ONLY,
-                                     item_handlers=handlers)
-      try:
-        restored = attempt(reader, step)
-      except MissingItemError:
-        raise
-      except Exception as e:  # orbax/TensorStore raise many types.
-        why = _damage(os.path.join(str(directory), str(step)), e)
-        if not fallback:
-          raise CheckpointError(f'{directory}: checkpoint step {step} does not '
-                                f'restore ({why})') from None
-        log(f'warning: checkpoint step {step} in {directory} does not restore '
-            f'({why}); trying the previous one')
-        skipped = True
-        if on_damaged:
-          on_damaged(step)
-        continue
-      finally:
-        reader.close()
+    step_dir = os.path.join(str(directory), str(step))
+    why = _unlike_saved(step_dir)  # orbax is not asked to read a damaged step
+    if why is None:
+      with quiet():
+        # A fresh reader per attempt: a failed restore leaves a manager's item
+        # handlers in a state where the next restore fails too.
+        reader = ocp.CheckpointManager(directory, options=READ_ONLY,
+                                       item_handlers=handlers)
+        try:
+          restored = attempt(reader, step)
+        except MissingItemError:
+          raise
+        except Exception as e:  # orbax/TensorStore raise many types.
+          why = _damage(step_dir, e)
+        finally:
+          reader.close()
+    if why is not None:
+      if not fallback:
+        raise CheckpointError(f'{directory}: checkpoint step {step} does not '
+                              f'restore ({why})') from None
+      log(f'warning: checkpoint step {step} in {directory} does not restore '
+          f'({why}); trying the previous one')
+      skipped = True
+      if on_damaged:
+        on_damaged(step)
+      continue
     if skipped:
       log(f'loaded checkpoint step {step} from {directory}')
     return restored, step

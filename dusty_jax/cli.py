@@ -5,8 +5,12 @@ an error printed: one ``error: ...`` line on stderr and a non-zero exit
 (2 for a bad flag or config, as absl does for bad flags; 1 otherwise), and
 Ctrl-C is one line saying what a rerun does, exit 130. A bug in dusty_jax
 still shows its traceback (and ``DUSTY_JAX_TRACEBACK=1`` shows one for any
-error). While a command runs, orbax's and TensorStore's chatter is silenced
-(checkpoint.quiet), which a library user's own program never is.
+error). While a command runs, orbax's log records and asyncio's reports are
+silenced (checkpoint.quiet), which a library user's own program never is.
+Not silenced: TensorStore's 'Event loop is closed' reports when an orbax
+save or restore fails half-way (a disk filled by another writer during a
+save, a checkpoint damaged without a size change or saved without a
+manifest) may come before the one error line.
 """
 
 from __future__ import annotations

@@ -336,7 +336,7 @@ def init_run(workdir: str, config, params) -> None:
                       params.tolerance)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
   checkpoint.save(mngr, 0, state, force=True)
-  mngr.wait_until_finished()
+  checkpoint.wait(mngr)
 
 
 @jax.jit

@@ -154,6 +154,14 @@ def _python_files(*dirs):
       yield from (os.path.join(d, f) for f in files if f.endswith('.py'))
 
 
+def test_the_library_changes_no_process_wide_hook():
+  """A library leaves the asyncio event-loop policy and the interpreter's
+  hook for unraisable errors to the program (STYLE.md)."""
+  bad = {os.path.relpath(p, REPO): word for p in _python_files('dusty_jax')
+         for word in ('set_event_loop_policy', 'unraisablehook') if word in open(p).read()}
+  assert not bad, f'process-wide hooks swapped: {bad}'
+
+
 def test_the_name_check_sees_comparisons(tmp_path):
   p = tmp_path / 'x.py'
   p.write_text("a = m == 'dusty2'\nb = m in ('baseline', 'x')\nc = {'dusty1': 1}\n")

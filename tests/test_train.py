@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import configs, drops, levels, parallel, trainer, writers
+from dusty_jax import checkpoint, configs, drops, levels, parallel, trainer, writers
 from conftest import FAST_COMPILE
 from event_files import read_events, scalars
 from train_helpers import STUDY, run_steps, tiny_config
@@ -398,8 +398,9 @@ print('--- end', file=sys.stderr, flush=True)
 def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, tmp_path):
   """Items 4 and 5: per skipped step one warning with a reason a person can
   act on, then the step loaded, and nothing else on stderr (no asyncio or
-  TensorStore noise, no orbax warning per load); an intact run loads in
-  silence."""
+  TensorStore noise such as 'Event loop is closed', no orbax warning per
+  load); an intact run loads in silence. The truncated step is found by its
+  manifest, which names a file."""
   _, workdir, _ = smoke_run
   runs = [str(workdir)] + [str(_damaged_copy(workdir, tmp_path / d, d))
                            for d in ('truncate', 'metadata', 'empty')]
@@ -418,14 +419,56 @@ def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, t
       blocks[name].append(line)
   assert blocks.pop('end') == []
   assert blocks.pop(f'load {runs[0]}') == [] and blocks.pop(f'resume {runs[0]}') == []
-  reasons = {'truncate': 'data file truncated', 'metadata': 'metadata missing',
-             'empty': 'empty step directory'}
+  assert 'Event loop is closed' not in res.stderr and 'Traceback' not in res.stderr
+  reasons = {'truncate': r'data file truncated: default/\S*d/[0-9a-f]+ has \d+ bytes, '
+                         r'\d+ when saved, and \d+ more files',
+             'metadata': 'metadata missing', 'empty': 'empty step directory'}
   for run, damage in zip(runs[1:], ('truncate', 'metadata', 'empty')):
     d = os.path.join(run, 'checkpoints')
-    want = [f'warning: checkpoint step 4 in {d} does not restore ({reasons[damage]}); '
-            'trying the previous one', f'loaded checkpoint step 2 from {d}']
-    assert blocks[f'load {run}'] == want, res.stderr[-3000:]
-    assert blocks[f'resume {run}'] == want, res.stderr[-3000:]
+    want = (rf'warning: checkpoint step 4 in {re.escape(d)} does not restore '
+            rf'\({reasons[damage]}\); trying the previous one\n'
+            rf'loaded checkpoint step 2 from {re.escape(d)}')
+    for what in ('load', 'resume'):
+      assert re.fullmatch(want, '\n'.join(blocks[f'{what} {run}'])), res.stderr[-3000:]
+
+
+def test_a_step_unlike_its_manifest_is_not_read(smoke_run, tmp_path, monkeypatch):
+  """A step whose files differ in size from those saved is skipped before
+  orbax reads it (a failed read leaves TensorStore reads printing 'Event
+  loop is closed'), with the file that differs."""
+  _, workdir, _ = smoke_run
+  copy = _damaged_copy(workdir, tmp_path / 'copy', 'truncate')
+  read = []
+  restore = checkpoint.ocp.CheckpointManager.restore
+  monkeypatch.setattr(checkpoint.ocp.CheckpointManager, 'restore',
+                      lambda self, step, **kw: read.append(step) or restore(self, step, **kw))
+  messages = []
+  _, step = checkpoint.restore_item(str(copy / 'checkpoints'), 'ema_params',
+                                    log=messages.append)
+  assert (step, read) == (2, [2]) and 'data file truncated: default/' in messages[0]
+
+
+def test_a_save_without_room_is_refused_before_orbax_writes(tmp_path, monkeypatch):
+  """A disk with less free space than a step needs gives the one-line error
+  of a full disk before orbax writes anything (a save that fails half-way
+  leaves TensorStore printing 'Event loop is closed')."""
+  state = {'w': np.ones((64, 64), np.float32)}
+  mngr = checkpoint.manager(str(tmp_path / 'run'))
+  checkpoint.save(mngr, 1, state)
+  checkpoint.wait(mngr)
+  folder = tmp_path / 'run' / 'checkpoints'
+  need = sum(p.stat().st_blocks * 512 for p in (folder / '1').rglob('*') if p.is_file())
+  usage = shutil.disk_usage(folder)
+  monkeypatch.setattr(shutil, 'disk_usage', lambda path: usage._replace(free=need))
+  with pytest.raises(checkpoint.CheckpointError, match=(
+      rf'^no space left on device while writing checkpoint 2 in {re.escape(str(folder))}; '
+      r'step 1 is intact; free space and rerun to resume from 1$')):
+    checkpoint.save(mngr, 2, state)
+  assert sorted(os.listdir(folder)) == ['1']
+  monkeypatch.setattr(shutil, 'disk_usage', lambda path: usage._replace(free=2 * need))
+  assert checkpoint.save(mngr, 2, state)
+  checkpoint.wait(mngr)
+  assert checkpoint.saved_steps(str(tmp_path / 'run')) == [1, 2]
 
 
 def test_nan_before_any_checkpoint_says_a_rerun_starts_afresh(smoke_run, tmp_path):
