@@ -481,12 +481,14 @@ def summary(results: dict, chosen: dict, a, machine: str) -> str:
       kind_rows.append([key, kind, k['scans'],
                         f'{100 * syn["mean"]["1nna"]:.1f} ({100 * syn["train_row"]["1nna"]:.1f})'
                         if syn else 'n/a',
+                        f'{1e3 * syn["mean"]["mmd"]:.2f} ({1e3 * syn["train_row"]["mmd"]:.2f})'
+                        if syn else 'n/a',
                         *(f'{k["restoration"][c]:.3f}' if k['restoration'][c] is not None
                           else 'n/a' for c in CORRUPTIONS)])
   if kind_rows:
-    lines += ['', 'Per scene kind (test): 1-NNA % of the samples against that kind\'s scans '
-              '(training-set row in brackets), restoration AbsRel.', '',
-              study.md_table(['cell', 'kind', 'scans', '1-NNA % (train row)',
+    lines += ['', 'Per scene kind (test): 1-NNA % and MMD of the samples against that kind\'s '
+              'scans (training-set row in brackets), restoration AbsRel.', '',
+              study.md_table(['cell', 'kind', 'scans', '1-NNA % (train row)', 'MMD x1e3 (train row)',
                               *(f'AbsRel {c}' for c in CORRUPTIONS)], kind_rows)]
   return '\n'.join(lines) + '\n'
 
@@ -495,48 +497,55 @@ def length_points(results: dict, length_run: str) -> list[dict]:
   sensor, size, seed = length_run.split('/')
   r = results.get(f'{sensor_dir(sensor)}/{size}/seed{seed}', {})
   return [{'step': int(k.split('_')[1]), '1nna': v['synthesis']['mean']['1nna'],
-           **{c: v['restoration'][c] for c in CORRUPTIONS}}
+           'mmd': v['synthesis']['mean']['mmd'], **{c: v['restoration'][c] for c in CORRUPTIONS}}
           for k, v in sorted(r.items()) if k.startswith('length_')]
 
 
+# (section, figure, label, scale) of the picture's quality panels: the figures
+# that separate the sizes (1-NNA is near 100% for every CPU-scale model).
+PANELS = (('synthesis', 'mmd', 'MMD x1e3 (test)', 1e3),
+          ('restoration', 'drop:0.9', 'restoration AbsRel, drop:0.9 (test)', 1.0))
+
+
 def picture(results: dict, length: list, length_run: str, path: str):
+  """Quality against step time, a line per sensor (a panel per PANELS
+  figure; bars: the seeds' range), and the length run's figures against its
+  training steps."""
   plt = common.pyplot()
-  fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-  by_sensor = {}
-  for key, r in results.items():
-    if 'speed' in r and 'test' in r:
-      sensor, size, _ = key.split('/')
-      by_sensor.setdefault(sensor, {}).setdefault(size, []).append(
-          (r['speed']['step_s'], r['test']['synthesis']['mean']['1nna']))
-  for sensor, sizes in by_sensor.items():
-    pts = sorted((np.mean([p[0] for p in v]), np.mean([p[1] for p in v]),
-                  min(p[1] for p in v), max(p[1] for p in v), s) for s, v in sizes.items())
-    x, y, lo, hi, names = zip(*pts)
-    y = np.asarray(y)
-    ax1.errorbar(x, 100 * y, yerr=100 * np.abs([y - lo, np.asarray(hi) - y]), fmt='o-',
-                 capsize=3, label=sensor)
-    for xi, yi, n in zip(x, y, names):
-      ax1.annotate(f'{n} ({xi:.3g} s)', (xi, 100 * yi), textcoords='offset points', xytext=(3, 4), fontsize=7)
-  ax1.set_xscale('log')
-  ax1.xaxis.set_minor_formatter(plt.NullFormatter())  # crowded in a narrow range; the
-                                                      # annotations give each time
-  ax1.set_xlabel('seconds per train step')
-  ax1.set_ylabel('1-NNA % (test; lower is better)')
-  ax1.set_title('Quality against step time (bars: seeds)')
-  ax1.legend()
+  fig, axes = plt.subplots(1, len(PANELS) + 1, figsize=(5 * (len(PANELS) + 1), 4.2))
+  for ax, (section, name, label, scale) in zip(axes, PANELS):
+    by_sensor = {}
+    for key, r in results.items():
+      if 'speed' in r and 'test' in r:
+        sensor, size, _ = key.split('/')
+        by_sensor.setdefault(sensor, {}).setdefault(size, []).append(
+            (r['speed']['step_s'], scale * figure(r['test'], section, name)))
+    for sensor, sizes in sorted(by_sensor.items()):
+      pts = sorted((np.mean([p[0] for p in v]), np.mean([p[1] for p in v]),
+                    min(p[1] for p in v), max(p[1] for p in v), s) for s, v in sizes.items())
+      x, y, lo, hi, names = map(np.asarray, zip(*pts))
+      ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt='o-', capsize=3, label=sensor)
+      for xi, yi, n in zip(x, y, names):
+        ax.annotate(n, (xi, yi), textcoords='offset points', xytext=(3, 4), fontsize=7)
+    ax.set_xscale('log')
+    ax.set_xlabel('seconds per train step (log)')
+    ax.set_ylabel(label + '; lower is better')
+    ax.set_title(f'{label.split(" (")[0]} against step time')
+    ax.legend(fontsize=8)
+  ax = axes[-1]
   if length:
     steps = [p['step'] for p in length]
-    ax2.plot(steps, [100 * p['1nna'] for p in length], 'o-', label='1-NNA %')
-    ax2.set_ylabel('1-NNA % (test)')
-    ax3 = ax2.twinx()
-    for c, mark in zip(CORRUPTIONS, 'sd'):
-      ax3.plot(steps, [p[c] for p in length], mark + '--', label=f'AbsRel {c}', color=f'C{1 + CORRUPTIONS.index(c)}')
-    ax3.set_ylabel('restoration AbsRel (test)')
-    ax3.legend(loc='upper right', fontsize=8)
-    ax2.legend(loc='upper left', fontsize=8)
+    ax.plot(steps, [1e3 * p['mmd'] for p in length], 'o-', label='MMD x1e3')
+    ax.set_ylabel('MMD x1e3 (test)')
+    twin = ax.twinx()
+    for i, (c, mark) in enumerate(zip(CORRUPTIONS, 'sd')):
+      twin.plot(steps, [p[c] for p in length], mark + '--', label=f'AbsRel {c}', color=f'C{1 + i}')
+    twin.set_ylabel('restoration AbsRel (test)')
+    twin.legend(loc='upper right', fontsize=8)
+    ax.legend(loc='upper left', fontsize=8)
   sensor, size, seed = length_run.split('/')
-  ax2.set_xlabel('training steps')
-  ax2.set_title(f'Length: {sensor} {size} seed {seed}' + ('' if length else ' (not run)'))
+  ax.set_xlabel('training steps')
+  ax.set_title(f'Length: {sensor} {size} seed {seed}' + ('' if length else ' (not run)'))
   fig.tight_layout()
   fig.savefig(path, dpi=120)
   plt.close(fig)
