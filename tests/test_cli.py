@@ -40,7 +40,7 @@ def _one_error_line(res, status):
 
 
 def test_unknown_config_field_names_the_nearest(tmp_path):
-  """Item 1: one line with difflib's nearest field, exit 2 as absl's bad flags."""
+  """One line with difflib's nearest field, exit 2 as absl's bad flags."""
   cmd = [sys.executable, '-m', 'dusty_jax.train', '--config', SMOKE,
          '--workdir', str(tmp_path / 'w')]
   res = subprocess.run(cmd + ['--config.data.dri=data/kitti'], env=_env(tmp_path),
@@ -124,7 +124,7 @@ def _wrong_shape_data(tmp_path):
   return f'--config.data.dir={d}'
 
 
-# Item 2: (arguments, devices, exit status, what the one line says).
+# (arguments, devices, exit status, what the one line says).
 BAD = [
     (['--config.sensor.preset=hdl64'], 1, 2, r"sensor\.preset='hdl64'.*kitti, mpo"),
     (['--config.batch_size=6'], 4, 2, r'batch_size=6: is not divisible by the 4 devices'),
@@ -227,7 +227,7 @@ def _training(tmp_path, workdir, *extra, prefix=()):
 
 
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
-  """Item 3: the step, the checkpoint a rerun resumes from; no traceback."""
+  """The step, the checkpoint a rerun resumes from; no traceback."""
   workdir = tmp_path / 'w'
   saved = lambda: [int(s) for s in os.listdir(workdir / 'checkpoints') if s.isdigit()]
   with _training(tmp_path, str(workdir)) as proc:
@@ -260,7 +260,7 @@ def _can_mount_tmpfs():
 @pytest.mark.skipif(not _can_mount_tmpfs(), reason='needs unshare and tmpfs mounts '
                     '(root or user namespaces) to fill a disk')
 def test_full_disk_during_a_checkpoint_is_one_line(tmp_path):
-  """Item 6: a 2 MB disk holds two checkpoints of the smoke run; writing the
+  """A 2 MB disk holds two checkpoints of the smoke run; writing the
   third fails. One line: which checkpoint, which are intact, what to do."""
   disk = tmp_path / 'disk'
   disk.mkdir()

@@ -395,7 +395,7 @@ def test_a_learning_rate_that_cannot_work_is_refused(gen, lr):
 
 
 def test_empty_in_empty_out(gen):
-  """Item 13: sample(num=0) and invert of 0 scans agree: numpy's rule."""
+  """sample(num=0) and invert of 0 scans agree: numpy's rule."""
   h, w = gen.sensor.shape
   out = sampling.sample(gen, jax.random.key(0), 0)
   assert out['scan'].shape == (0, h, w) and out['points'].shape == (0, h, w, 3)
@@ -423,7 +423,7 @@ def _real_and_simulated_depths(sensor):
 
 
 def test_scans_not_encoded_are_warned_about_and_real_ones_never(gen):
-  """Item 11: depth / max_depth lies inside [-1, 1] but has no value below
+  """depth / max_depth lies inside [-1, 1] but has no value below
   0 and no drop; genuine encoded scans always have both."""
   import warnings
   real, sim = _real_and_simulated_depths(gen.sensor)
@@ -440,7 +440,7 @@ def test_scans_not_encoded_are_warned_about_and_real_ones_never(gen):
 
 
 def test_invert_cli_skips_encoded_scans_given_as_metres(smoke_run, tmp_path, capsys):
-  """Item 10: the file and the reason, skipped as prepare skips; no NaN
+  """The file and the reason, skipped as prepare skips; no NaN
   table; a non-zero exit when no scan could be fitted."""
   from dusty_jax.tools import invert as invert_tool
   _, workdir, _ = smoke_run

@@ -396,7 +396,7 @@ print('--- end', file=sys.stderr, flush=True)
 
 
 def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, tmp_path):
-  """Items 4 and 5: per skipped step one warning with a reason a person can
+  """Per skipped step one warning with a reason a person can
   act on, then the step loaded, and nothing else on stderr (no asyncio or
   TensorStore noise such as 'Event loop is closed', no orbax warning per
   load); an intact run loads in silence. The truncated step is found by its
