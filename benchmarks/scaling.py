@@ -1,7 +1,7 @@
 """Model only what a scene requires: DUSty's size, sensor, scene and training length.
 
     python benchmarks/scaling.py --workdir runs/scaling [--sensors kitti,vlp16:256]
-        [--sizes c8-64_z64,...] [--seeds 0,1] [--steps N] [--only-train]
+        [--sizes c8-64_z64,...] [--seeds 0,1] [--steps N] [--only-train | --speed-again]
 
 Trains the main command's recipe (experiments/synthetic.py: the authors'
 training at the CPU scale, then drop levels fitted) for each cell of a grid,
@@ -120,6 +120,9 @@ def parse_args(argv=None):
   p.add_argument('--keep-every', type=int, default=KEEP_EVERY,
                  help='checkpoints kept for the length study (config keep_every)')
   p.add_argument('--only-train', action='store_true', help='train the cells; measure nothing')
+  p.add_argument('--speed-again', action='store_true',
+                 help="time each chosen cell's speed again, in this call only (so that the "
+                      "cells' step times compare: a shared machine's load varies between calls)")
   p.add_argument('--only-report', action='store_true',
                  help='train nothing, measure nothing: the report of what is cached')
   p.add_argument('--no-length', action='store_true', help='skip the length study')
@@ -278,6 +281,7 @@ def measure(run: str, a) -> dict:
                         f'each), extrapolated linearly to {a.invert_steps}')
   out['peak_rss_mib'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
   out['machine'] = common.machine()
+  out['load_average_1min'] = os.getloadavg()[0]  # at the end: what else ran
   out['peak_rss_note'] = ('ru_maxrss of the measuring subprocess: after the step timing '
                           '(train), and at its end (inversions of 1 and 32 scans too)')
   return out
@@ -567,10 +571,17 @@ def main(argv=None):
     for sensor, size, seed in chosen_cells:
       run = run_dir(a.workdir, sensor, size, seed)
       cache = study.Cache(os.path.join(run, EVAL_FILE))
+      if a.speed_again and 'train' not in cache.data:
+        continue  # times trained cells only
       if 'train' not in cache.data:
         print(f'== training {sensor} {size} seed {seed} into {run}', flush=True)
       cache.get('train', lambda: train(cell_config(sensor, size, seed, a), run))
       if a.only_train:
+        continue
+      if a.speed_again:
+        print(f'== timing {sensor} {size} seed {seed} again', flush=True)
+        cache.data.pop('speed', None)
+        cache.get('speed', lambda: measure_in_subprocess(run, a))
         continue
       print(f'== measuring {sensor} {size} seed {seed}', flush=True)
       length = not a.no_length and f'{sensor}/{size}/{seed}' == a.length_run

@@ -198,8 +198,12 @@ def test_a_silent_process_ends_its_peer_within_peer_timeout(tmp_path):
   run = str(tmp_path / 'run')
   procs = _train(tmp_path, run, '--config.num_steps=100000', '--peer_timeout=10')
   try:
-    # The watch starts before the lock files are written.
+    # The watch starts before the lock files are written; data.json once the
+    # data is simulated (a process ended by the watch while its simulation's
+    # worker pool runs leaves the pool's semaphores to multiprocessing's
+    # resource tracker, which warns after the error line).
     _wait_for(os.path.join(run, 'train.lock.1'), procs, run)
+    _wait_for(os.path.join(run, 'data.json'), procs, run)
     procs[1].send_signal(signal.SIGSTOP)  # alive, but silent (a hung host)
     assert procs[0].wait(timeout=600) == 1
   finally:

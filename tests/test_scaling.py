@@ -115,6 +115,18 @@ def test_rerun_skips_finished_work_and_resumes_a_killed_one(run, monkeypatch):
   third = scaling.main(argv)
   assert calls == ['test']
   assert third['cells']['vlp16-64/c8-32_z32/seed0']['test']['again']
+  # --speed-again: every trained cell's speed timed again, nothing else.
+  timed = []
+  monkeypatch.setattr(scaling, 'measure_in_subprocess',
+                      lambda run, a: timed.append(os.path.basename(os.path.dirname(run))) or
+                      {**first['cells']['vlp16-64/c4-16_z16/seed0']['speed'], 'again': True})
+  fourth = scaling.main(argv + ['--speed-again'])
+  assert sorted(timed) == sorted(SIZES) and calls == ['test']
+  assert all(c['speed']['again'] for c in fourth['cells'].values())
+  assert {k: {s: v for s, v in c.items() if s not in ('speed', 'seconds')}
+          for k, c in fourth['cells'].items()} == {
+      k: {s: v for s, v in c.items() if s not in ('speed', 'seconds')}
+      for k, c in third['cells'].items()}
 
 
 def test_smallest_within_spread_of_the_largest():
