@@ -185,3 +185,15 @@ def test_cells_and_configs():
       k: v for k, v in main.to_dict().items() if k not in changed}
   with pytest.raises(ValueError, match='cBASE'):
     scaling.parse_size('16-128')
+
+
+def test_the_vlp16_experiment_is_the_cell_the_study_names():
+  """experiments/synthetic_vlp16.py trains what the study measured as its
+  named size for a 16-ring sensor (all but what only the study sets)."""
+  from dusty_jax import cli
+  path = os.path.join(os.path.dirname(__file__), '..', 'experiments', 'synthetic_vlp16.py')
+  got = cli._load_config(path).to_dict()
+  want = scaling.cell_config('vlp16:256', 'c32-256_z128', 0, scaling.parse_args([])).to_dict()
+  for c in (got, want):
+    del c['keep_every'], c['final_eval']
+  assert got == want
