@@ -533,6 +533,10 @@ def picture(results: dict, length: list, length_run: str, path: str):
       for xi, yi, n in zip(x, y, names):
         ax.annotate(n, (xi, yi), textcoords='offset points', xytext=(3, 4), fontsize=7)
     ax.set_xscale('log')
+    ax.xaxis.set_minor_formatter(plt.NullFormatter())  # minor labels overlap past a decade
+    ax.xaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f'{v:g}'))
+    ax.set_xticks([t for t in (0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5)
+                   if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]])
     ax.set_xlabel('seconds per train step (log)')
     ax.set_ylabel(label + '; lower is better')
     ax.set_title(f'{label.split(" (")[0]} against step time')
