@@ -551,8 +551,8 @@ def picture(results: dict, length: list, length_run: str, path: str):
       twin.plot(steps, [p[c] for p in length], mark + '--', label=f'AbsRel {c}', color=f'C{1 + i}')
     twin.set_yscale('log')  # an untrained model restores at AbsRel > 1
     twin.set_ylabel('restoration AbsRel (test, log)')
-    handles = [h for a_ in (ax, twin) for h in a_.get_legend_handles_labels()[0]]
-    ax.legend(handles, [h.get_label() for h in handles], loc='center right', fontsize=8)
+    handles = ax.get_legend_handles_labels()[0] + twin.get_legend_handles_labels()[0]
+    ax.legend(handles=handles, loc='center right', fontsize=8)
   sensor, size, seed = length_run.split('/')
   ax.set_xlabel('training steps')
   ax.set_title(f'Length: {sensor} {size} seed {seed}' + ('' if length else ' (not run)'))
