@@ -187,13 +187,21 @@ def test_cells_and_configs():
     scaling.parse_size('16-128')
 
 
-def test_the_vlp16_experiment_is_the_cell_the_study_names():
-  """experiments/synthetic_vlp16.py trains what the study measured as its
-  named size for a 16-ring sensor (all but what only the study sets)."""
+@pytest.mark.parametrize('name, sensor, size', [
+    ('synthetic_vlp16.py', 'vlp16:256', 'c32-256_z128'),
+    ('synthetic_c32.py', 'kitti', 'c32-256_z128'),
+])
+def test_the_experiment_is_the_cell_the_study_names(name, sensor, size):
+  """Each size experiment trains what the study measured as its named size
+  for that sensor (all but what only the study sets), and that size is the
+  one the committed results name."""
   from dusty_jax import cli
-  path = os.path.join(os.path.dirname(__file__), '..', 'experiments', 'synthetic_vlp16.py')
+  root = os.path.join(os.path.dirname(__file__), '..')
+  with open(os.path.join(root, 'benchmarks', 'results', 'scaling.json')) as f:
+    assert json.load(f)['chosen'][sensor.replace(':', '-')]['smallest'] == size
+  path = os.path.join(root, 'experiments', name)
   got = cli._load_config(path).to_dict()
-  want = scaling.cell_config('vlp16:256', 'c32-256_z128', 0, scaling.parse_args([])).to_dict()
+  want = scaling.cell_config(sensor, size, 0, scaling.parse_args([])).to_dict()
   for c in (got, want):
     del c['keep_every'], c['final_eval']
   assert got == want
