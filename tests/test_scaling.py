@@ -198,7 +198,7 @@ def test_the_experiment_is_the_cell_the_study_names(name, sensor, size):
   from dusty_jax import cli
   root = os.path.join(os.path.dirname(__file__), '..')
   with open(os.path.join(root, 'benchmarks', 'results', 'scaling.json')) as f:
-    assert json.load(f)['chosen'][sensor.replace(':', '-')]['smallest'] == size
+    assert json.load(f)['chosen'][scaling.sensor_dir(sensor)]['smallest'] == size
   path = os.path.join(root, 'experiments', name)
   got = cli._load_config(path).to_dict()
   want = scaling.cell_config(sensor, size, 0, scaling.parse_args([])).to_dict()
