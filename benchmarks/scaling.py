@@ -512,14 +512,57 @@ PANELS = (('synthesis', 'mmd', 'MMD x1e3 (test)', 1e3),
           ('restoration', 'beams:4', 'restoration AbsRel, beams:4 (test)', 1.0))
 
 
+# Where label_points may put a name: (x, y) offset in points, alignment.
+LABEL_PLACES = tuple(((dx, dy), ha, 'bottom' if dy > 0 else 'top')
+                     for d in (4, 14) for dx, ha in ((3, 'left'), (-3, 'right'), (0, 'center'))
+                     for dy in (d, -d))
+
+
+def label_points(ax, points):
+  """Names each (x, y, name, colour) point at the first of LABEL_PLACES whose
+  text box stays in the axes and overlaps the fewest names already placed,
+  then crosses the fewest line pieces and error bars (a place two away from
+  the point counts as three crossings)
+  (sizes one step time apart would print over each other). Call it after the
+  figure's layout: it works in pixels."""
+  renderer = ax.figure.canvas.get_renderer()
+  segments = [ax.transData.transform(line.get_xydata()) for line in ax.lines]
+  segments += [ax.transData.transform(seg) for c in ax.collections for seg in c.get_segments()]
+  drawn = [a + np.linspace(0, 1, 30)[:, None] * (b - a)  # each straight piece, sampled
+           for seg in segments for a, b in zip(seg, seg[1:])]
+  taken = []
+  for x, y, name, colour in points:
+    best = None
+    for offset, ha, va in LABEL_PLACES:
+      text = ax.annotate(name, (x, y), textcoords='offset points', xytext=offset,
+                         ha=ha, va=va, fontsize=7, color=colour)
+      box = text.get_window_extent(renderer).padded(2)
+      inside = lambda p: np.any((p[:, 0] > box.x0) & (p[:, 0] < box.x1) &
+                                (p[:, 1] > box.y0) & (p[:, 1] < box.y1))
+      clashes = (100 * (box.x0 < ax.bbox.x0 or box.x1 > ax.bbox.x1 or
+                        box.y0 < ax.bbox.y0 or box.y1 > ax.bbox.y1) +
+                 10 * sum(box.overlaps(b) for b in taken) + sum(map(inside, drawn)) +
+                 3 * (abs(offset[1]) > 4))  # far from its point: worse than crossing a line
+      if best is None or clashes < best[0]:
+        if best:
+          best[1].remove()
+        best = (clashes, text, box)
+      else:
+        text.remove()
+      if clashes == 0:
+        break
+    taken.append(best[2])
+
+
 def picture(results: dict, length: list, length_run: str, path: str):
   """Quality against step time, a line per sensor (a panel per PANELS
   figure; bars: the seeds' range), and the length run's figures against its
   training steps."""
   plt = common.pyplot()
   fig, axes = plt.subplots(1, len(PANELS) + 1, figsize=(5 * (len(PANELS) + 1), 4.2))
+  labels = []
   for ax, (section, name, label, scale) in zip(axes, PANELS):
-    by_sensor = {}
+    by_sensor, points = {}, []
     for key, r in results.items():
       if 'speed' in r and 'test' in r:
         sensor, size, _ = key.split('/')
@@ -529,10 +572,10 @@ def picture(results: dict, length: list, length_run: str, path: str):
       pts = sorted((np.mean([p[0] for p in v]), np.mean([p[1] for p in v]),
                     min(p[1] for p in v), max(p[1] for p in v), s) for s, v in sizes.items())
       x, y, lo, hi, names = map(np.asarray, zip(*pts))
-      ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt='o-', capsize=3, label=sensor)
-      for xi, yi, n in zip(x, y, names):
-        ax.annotate(n, (xi, yi), textcoords='offset points', xytext=(3, 4), fontsize=7)
+      line = ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt='o-', capsize=3, label=sensor)
+      points += [(xi, yi, n, line[0].get_color()) for xi, yi, n in zip(x, y, names)]
     ax.set_xscale('log')
+    labels.append((ax, points))
     ax.xaxis.set_minor_formatter(plt.NullFormatter())  # minor labels overlap past a decade
     ax.xaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f'{v:g}'))
     ax.set_xticks([t for t in (0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5)
@@ -557,6 +600,8 @@ def picture(results: dict, length: list, length_run: str, path: str):
   ax.set_xlabel('training steps')
   ax.set_title(f'Length: {sensor} {size} seed {seed}' + ('' if length else ' (not run)'))
   fig.tight_layout()
+  for ax, points in labels:
+    label_points(ax, points)
   fig.savefig(path, dpi=120)
   plt.close(fig)
 

@@ -147,6 +147,24 @@ def test_smallest_within_spread_of_the_largest():
   assert scaling.smallest_within_spread(one)['smallest'] == 'L'
 
 
+def test_labels_of_close_points_keep_apart_and_inside():
+  plt = scaling.common.pyplot()
+  fig, ax = plt.subplots(figsize=(5, 4.2))  # a panel of the study's picture
+  x = np.array([0.04, 0.1, 0.11, 0.12, 0.5])  # three in a clump mid-panel
+  y = np.array([10.0, 8.0, 7.9, 8.05, 6.0])
+  ax.plot(x, y, 'o-')
+  ax.set_xscale('log')
+  fig.tight_layout()
+  names = ['c8-64_z64', 'c16-128_z64', 'c16-128_z128', 'c8-64_z128', 'c32-256_z128']
+  scaling.label_points(ax, [(a, b, n, 'k') for a, b, n in zip(x, y, names)])
+  renderer = fig.canvas.get_renderer()
+  boxes = [t.get_window_extent(renderer) for t in ax.texts]
+  assert [t.get_text() for t in ax.texts] == names  # one name per point, no leftovers
+  assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1:])
+  assert all(ax.bbox.contains(b.x0, b.y0) and ax.bbox.contains(b.x1, b.y1) for b in boxes)
+  plt.close(fig)
+
+
 def test_scene_kind_from_the_seed_is_the_simulators():
   seeds = synthetic.scene_seeds(40, 2)
   kinds = [scene.kind_of(s) for s in seeds]
