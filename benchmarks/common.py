@@ -49,6 +49,20 @@ def timed(fn: Callable, repeats: int, warmup: int = 1) -> Timing:
   return Timing(statistics.median(times), times, warm, out)
 
 
+def peak_rss_mib() -> float:
+  """This process's peak resident memory, MiB: /proc's VmHWM. Not
+  ru_maxrss: Linux carries a parent's peak through fork and exec into the
+  child's ru_maxrss, so a subprocess's figure would be at least its parent's."""
+  try:
+    with open('/proc/self/status') as f:
+      return next(int(l.split()[1]) for l in f if l.startswith('VmHWM:')) / 1024
+  except (OSError, StopIteration):  # not Linux: ru_maxrss, in bytes on macOS
+    import resource
+    import sys
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == 'darwin' else peak / 1024
+
+
 # ----------------------------------------------------------------------------
 # The machine.
 # ----------------------------------------------------------------------------

@@ -6,11 +6,12 @@ Writes small synthetic KITTI ``.bin`` scans (64 rings x --points returns,
 sensor order) into a temporary dataset root, runs
 ``dusty_jax.data.prepare.prepare`` on its training split in a fresh
 subprocess per size, and reads the subprocess's peak resident set
-(``ru_maxrss``). Then, on each prepared array, draws 100 training batches of
-32 with the train loader (``data.pipeline.Batches``, memory-mapped) in
-another subprocess, and reads its peak too, and its private (anonymous)
-resident memory: pages of the memory-mapped array it touched count in the
-peak but are the kernel's page cache, reclaimable. ``--tree`` runs the dusty_jax of
+(/proc's ``VmHWM``: a subprocess's ``ru_maxrss`` would count its parent's).
+Then, on each prepared array, draws 100 training batches of 32 with the
+train loader (``data.pipeline.Batches``, memory-mapped) in another
+subprocess, and reads its peak too, and its private (anonymous) resident
+memory: pages of the memory-mapped array it touched count in the peak but
+are the kernel's page cache, reclaimable. ``--tree`` runs the dusty_jax of
 another checkout (e.g. the code before prepare wrote scan by scan) for a
 comparison. Results: benchmarks/results/prepare_memory.json.
 """
@@ -29,15 +30,16 @@ from dusty_jax.data import kitti
 from dusty_jax.sensor import get_sensor
 
 PREPARE = '''
-import resource, sys
+import sys
 from dusty_jax.data import prepare
 meta = prepare.prepare('kitti', sys.argv[1], sys.argv[2], splits=('train',),
                        log=lambda m: None)
-print(meta['splits']['train'], resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+status = dict(l.split(':', 1) for l in open('/proc/self/status'))
+print(meta['splits']['train'], int(status['VmHWM'].split()[0]))
 '''
 
 LOADER = '''
-import resource, sys
+import sys
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.sensor import get_sensor
 sensor = get_sensor('kitti')
@@ -47,7 +49,7 @@ for step in range(100):
   batches(step)
 status = dict(l.split(':', 1) for l in open('/proc/self/status'))
 anon = int(status.get('RssAnon', '0 kB').split()[0])
-print(anon, len(depth), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+print(anon, len(depth), int(status['VmHWM'].split()[0]))
 '''
 
 

@@ -35,8 +35,9 @@ Per cell, measured:
     of 32 scans: INVERT_ITERS iterations timed (median of 2 after a warm-up
     each) and extrapolated linearly to --invert-steps (fixed cost + per-
     iteration cost, both fitted to the two counts); peak memory: that
-    subprocess's ru_maxrss after the step timing (``peak_rss_train_mib``)
-    and at its end, inversions included (``peak_rss_mib``);
+    subprocess's own peak (common.peak_rss_mib) after the step timing
+    (``peak_rss_train_mib``) and at its end, inversions included
+    (``peak_rss_mib``);
   * on the validation split and on the test split: Table II
     (evaluation.synthesis, N = --num-synthesis at --points points, mean over
     --synthesis-seeds; with the training-set row); --num-restore scans
@@ -75,7 +76,6 @@ import importlib.util
 import json
 import os
 import re
-import resource
 import subprocess
 import sys
 import time
@@ -263,7 +263,7 @@ def measure(run: str, a) -> dict:
   out = {'params_g': count(g), 'params_d': count(d), 'flops_per_step': flops,
          'step_s': timing.median, 'step_times_s': timing.times,
          'step_compile_s': timing.warmup[0], 'devices': jax.device_count(),
-         'peak_rss_train_mib': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+         'peak_rss_train_mib': common.peak_rss_mib()}
   params, _ = dusty_jax.load_checkpoint(run, log=lambda m: None)
   out['invert'] = {}
   for b in INVERT_BATCHES:
@@ -279,10 +279,10 @@ def measure(run: str, a) -> dict:
                              'seconds': fixed + a.invert_steps * per_iter}
   out['invert_note'] = (f'{INVERT_ITERS} iterations timed (median of 2 after a warm-up '
                         f'each), extrapolated linearly to {a.invert_steps}')
-  out['peak_rss_mib'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+  out['peak_rss_mib'] = common.peak_rss_mib()
   out['machine'] = common.machine()
   out['load_average_1min'] = os.getloadavg()[0]  # at the end: what else ran
-  out['peak_rss_note'] = ('ru_maxrss of the measuring subprocess: after the step timing '
+  out['peak_rss_note'] = ('VmHWM of the measuring subprocess: after the step timing '
                           '(train), and at its end (inversions of 1 and 32 scans too)')
   return out
 

@@ -5,6 +5,7 @@ import functools
 import json
 import math
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -145,6 +146,24 @@ def test_smallest_within_spread_of_the_largest():
   # One seed of the largest: no spread, its own values are the bar.
   one = {'S': {'flops': 1, 'values': {'a': [1.01]}}, 'L': {'flops': 2, 'values': {'a': [1.0]}}}
   assert scaling.smallest_within_spread(one)['smallest'] == 'L'
+
+
+def test_peak_memory_is_the_subprocess_own_not_its_parents():
+  # A parent holding 400 MiB runs a child: the child's ru_maxrss reports the
+  # parent's peak (Linux carries it through fork and exec); peak_rss_mib must not.
+  if not os.path.exists('/proc/self/status'):
+    pytest.skip('no /proc here: peak_rss_mib falls back to ru_maxrss')
+  child = ('import resource, sys; sys.path.insert(0, sys.argv[1]); import common; '
+           'print(common.peak_rss_mib(), '
+           'resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)')
+  parent = ('import subprocess, sys; import numpy as np; held = np.ones(400 * 2**20 // 8); '
+            f'print(subprocess.run([sys.executable, "-c", {child!r}, sys.argv[1]], '
+            'capture_output=True, text=True, check=True).stdout)')
+  out = subprocess.run([sys.executable, '-c', parent, BENCHMARKS], capture_output=True,
+                       text=True, check=True).stdout
+  own, maxrss = map(float, out.split())
+  assert maxrss > 400  # the inherited figure: why ru_maxrss is not used
+  assert own < 150  # an interpreter importing numpy: tens of MiB
 
 
 def test_labels_of_close_points_keep_apart_and_inside():
