@@ -115,7 +115,8 @@ def parse_args(argv=None):
   p.add_argument('--sensors', default=','.join(SENSORS), help='PRESET or PRESET:WIDTH, ...')
   p.add_argument('--sizes', default=','.join(SIZES), help='cBASE-MAX_zLATENT, ...')
   p.add_argument('--seeds', default='',
-                 help="seeds of every chosen size ('': 0, and 1 for SIZES' first and last)")
+                 help="seeds of every chosen size ('': 0, and 1 for SIZES' first and last; "
+                      "with --speed-again, every seed trained)")
   p.add_argument('--steps', type=int, default=None, help="override the experiment's num_steps")
   p.add_argument('--keep-every', type=int, default=KEEP_EVERY,
                  help='checkpoints kept for the length study (config keep_every)')
@@ -173,13 +174,18 @@ def cells(a) -> list[tuple[str, str, int]]:
   out = []
   for sensor in [s for s in a.sensors.split(',') if s]:
     for size in sizes:
-      seeds = ([int(s) for s in a.seeds.split(',')] if a.seeds else
-               [0, 1] if size in (SIZES[0], SIZES[-1]) else [0])
+      if a.seeds:
+        seeds = [int(s) for s in a.seeds.split(',')]
+      elif a.speed_again:  # every seed trained, whichever the defaults name
+        tails = [p.rsplit('seed', 1)[1] for p in glob.glob(run_dir(a.workdir, sensor, size, '*'))]
+        seeds = sorted(int(t) for t in tails if t.isdigit())
+      else:
+        seeds = [0, 1] if size in (SIZES[0], SIZES[-1]) else [0]
       out += [(sensor, size, seed) for seed in seeds]
   return out
 
 
-def run_dir(workdir: str, sensor: str, size: str, seed: int) -> str:
+def run_dir(workdir: str, sensor: str, size: str, seed: int | str) -> str:
   return os.path.join(workdir, sensor_dir(sensor), size, f'seed{seed}')
 
 
@@ -613,6 +619,12 @@ def main(argv=None):
     print(json.dumps(measure(a.measure, a)))
     return None
   chosen_cells = cells(a)
+  if a.speed_again:  # times trained cells only
+    chosen_cells = [c for c in chosen_cells if 'train' in study.Cache(
+        os.path.join(run_dir(a.workdir, *c), EVAL_FILE)).data]
+    if not chosen_cells:
+      raise SystemExit(f'--speed-again: no trained cell of --sensors {a.sensors} '
+                       f'--sizes {a.sizes} under {a.workdir}')
   if not a.only_report:
     # Before JAX's first operation, as the training command (train.py).
     parallel.use_cpu_cores(cell_config(*chosen_cells[0], a).batch_size)
@@ -622,8 +634,6 @@ def main(argv=None):
     for sensor, size, seed in chosen_cells:
       run = run_dir(a.workdir, sensor, size, seed)
       cache = study.Cache(os.path.join(run, EVAL_FILE))
-      if a.speed_again and 'train' not in cache.data:
-        continue  # times trained cells only
       if 'train' not in cache.data:
         print(f'== training {sensor} {size} seed {seed} into {run}', flush=True)
       cache.get('train', lambda: train(cell_config(sensor, size, seed, a), run))

@@ -128,6 +128,23 @@ def test_rerun_skips_finished_work_and_resumes_a_killed_one(run, monkeypatch):
           for k, c in fourth['cells'].items()} == {
       k: {s: v for s, v in c.items() if s not in ('speed', 'seconds')}
       for k, c in third['cells'].items()}
+  # Without --seeds it times every seed trained, not the default seeds (0 here).
+  other = root / 'w' / 'vlp16-64' / 'c4-16_z16' / 'seed3'
+  other.mkdir()
+  try:
+    (other / scaling.EVAL_FILE).write_text(json.dumps({'train': {}}))
+    timed.clear()
+    i = argv.index('--seeds')
+    seedless = argv[:i] + argv[i + 2:]
+    scaling.main(seedless + ['--speed-again'])
+    assert sorted(timed) == sorted(SIZES + ('c4-16_z16',))
+  finally:
+    for f in other.iterdir():
+      f.unlink()
+    other.rmdir()
+  for untrained in (argv, seedless):
+    with pytest.raises(SystemExit, match='no trained cell'):
+      scaling.main(untrained + ['--speed-again', '--sizes', 'c2-4_z4'])
 
 
 def test_smallest_within_spread_of_the_largest():
