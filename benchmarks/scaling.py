@@ -525,12 +525,12 @@ LABEL_PLACES = tuple(((dx, dy), ha, 'bottom' if dy > 0 else 'top')
 
 
 def label_points(ax, points):
-  """Names each (x, y, name, colour) point at the first of LABEL_PLACES whose
-  text box stays in the axes and overlaps the fewest names already placed,
-  then crosses the fewest line pieces and error bars (a place two away from
-  the point counts as three crossings)
-  (sizes one step time apart would print over each other). Call it after the
-  figure's layout: it works in pixels."""
+  """Names each (x, y, name, colour) point at the place of LABEL_PLACES (the
+  first, on a tie) whose text box stays in the axes, overlaps the fewest
+  names already placed, then crosses the fewest line pieces and error bars;
+  a place of the outer ring counts as three crossings. Sizes one step time
+  apart would otherwise print over each other. Call it after the figure's
+  layout: it works in pixels."""
   renderer = ax.figure.canvas.get_renderer()
   segments = [ax.transData.transform(line.get_xydata()) for line in ax.lines]
   segments += [ax.transData.transform(seg) for c in ax.collections for seg in c.get_segments()]
