@@ -6,7 +6,7 @@ Writes small synthetic KITTI ``.bin`` scans (64 rings x --points returns,
 sensor order) into a temporary dataset root, runs
 ``dusty_jax.data.prepare.prepare`` on its training split in a fresh
 subprocess per size, and reads the subprocess's peak resident set
-(/proc's ``VmHWM``: a subprocess's ``ru_maxrss`` would count its parent's).
+(``common.peak_rss_mib``: a subprocess's ``ru_maxrss`` would count its parent's).
 Then, on each prepared array, draws 100 training batches of 32 with the
 train loader (``data.pipeline.Batches``, memory-mapped) in another
 subprocess, and reads its peak too, and its private (anonymous) resident
@@ -29,17 +29,20 @@ import common
 from dusty_jax.data import kitti
 from dusty_jax.sensor import get_sensor
 
+# Each runs in a subprocess of its own, on --tree's dusty_jax; ``common`` is
+# this directory's (run puts it on the path after the tree).
 PREPARE = '''
 import sys
+import common
 from dusty_jax.data import prepare
 meta = prepare.prepare('kitti', sys.argv[1], sys.argv[2], splits=('train',),
                        log=lambda m: None)
-status = dict(l.split(':', 1) for l in open('/proc/self/status'))
-print(meta['splits']['train'], int(status['VmHWM'].split()[0]))
+print(meta['splits']['train'], common.peak_rss_mib())
 '''
 
 LOADER = '''
 import sys
+import common
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.sensor import get_sensor
 sensor = get_sensor('kitti')
@@ -49,7 +52,7 @@ for step in range(100):
   batches(step)
 status = dict(l.split(':', 1) for l in open('/proc/self/status'))
 anon = int(status.get('RssAnon', '0 kB').split()[0])
-print(anon, len(depth), int(status['VmHWM'].split()[0]))
+print(anon, len(depth), common.peak_rss_mib())
 '''
 
 
@@ -71,14 +74,14 @@ def write_scans(root: str, num: int, points: int, seed: int = 0):
 
 
 def run(code: str, args, tree: str):
-  env = dict(os.environ, PYTHONPATH=tree, JAX_PLATFORMS='cpu')
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join([tree, common.HERE]), JAX_PLATFORMS='cpu')
   t = time.time()
   res = subprocess.run([sys.executable, '-c', code] + list(args), env=env, cwd=tree,
                        capture_output=True, text=True)
   if res.returncode:
     raise SystemExit(f'failed:\n{res.stderr[-3000:]}')
-  *extra, count, kib = res.stdout.split()
-  return int(count), int(kib) / 1024, time.time() - t, [int(x) / 1024 for x in extra]
+  *extra, count, peak_mib = res.stdout.split()
+  return int(count), float(peak_mib), time.time() - t, [int(x) / 1024 for x in extra]
 
 
 def main():
