@@ -1,7 +1,7 @@
 """DUSty-I on the simulated default data (HDL-64E, 64 x 256): the main job's
 recipe at the size benchmarks/scaling.py names for it, channels 32..256 and
-latent 128 (benchmarks/README.md, section scaling). It takes 2.6x the main
-job's step time (0.52 against 0.20 s on 2 CPU cores) for a model whose
+latent 128 (benchmarks/README.md, section scaling). It takes 2.9x the main
+job's step time (0.54 against 0.19 s on 2 CPU cores) for a model whose
 samples match the scans better (validation MMD) and whose restoration is no
 worse.
 """
