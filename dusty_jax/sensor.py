@@ -87,20 +87,17 @@ class SensorSpec:
           ([f'missing fields {missing}'] if missing else [])) +
           f' (a sensor spec has {sorted(fields)})')
     kw = dict(d)
+    for k in PER_BEAM:
+      if k in kw:
+        kw[k] = _numbers(k, kw[k], source)
+    for k in ('width', 'native_width', 'min_depth', 'max_depth', 'mount_height'):
+      if k in kw:
+        kw[k] = _number(k, kw[k], source, whole=k.endswith('width'))
+    if not isinstance(kw['name'], str):
+      raise DataError(f'{source}: name must be a string, got {json.dumps(kw["name"])}')
     try:
-      for k in PER_BEAM:
-        if k in kw:
-          kw[k] = tuple(float(a) for a in kw[k])
-      for k in ('width', 'native_width'):
-        if float(kw[k]) != int(kw[k]):
-          raise ValueError(f'{k} must be an integer, got {kw[k]!r}')
-        kw[k] = int(kw[k])
-      for k in ('min_depth', 'max_depth', 'mount_height'):
-        if k in kw:
-          kw[k] = float(kw[k])
-      kw['name'] = str(kw['name'])
       return cls(**kw)
-    except (TypeError, ValueError) as e:
+    except ValueError as e:
       raise DataError(f'{source}: {e}') from None
 
   def __post_init__(self):
@@ -108,6 +105,9 @@ class SensorSpec:
     el = np.asarray(self.elevation_deg, np.float64)
     if el.ndim != 1 or len(el) < 1:
       raise ValueError(f'{where}: no rings given')
+    if len(el) > MAX_BEAMS:
+      raise ValueError(f'{where}: {len(el):,} beams; a spec holds at most {MAX_BEAMS:,} '
+                       '(a ring id is 16 bits in the drivers\' formats)')
     if not (np.isfinite(el).all() and (np.abs(el) < 90).all()):
       raise ValueError(f'{where}: elevation_deg must be finite and inside '
                        f'(-90, 90) degrees, got [{el.min()}, {el.max()}]')
@@ -202,6 +202,70 @@ class SensorSpec:
 
 
 PER_BEAM = ('elevation_deg', 'azimuth_offset_deg', 'vertical_offset_m')
+# No spinning LiDAR numbers more beams than a 16-bit ring id holds (the ring
+# field of Velodyne's, Ouster's and Hesai's point clouds): a larger spec is a
+# mistake, refused before its images are allocated.
+MAX_BEAMS = 2 ** 16
+# What a prepared dataset's depths depend on, in the order a difference is
+# named (:func:`first_difference`): its rows, its columns, its range.
+DATA_FIELDS = ('elevation_deg', 'vertical_offset_m', 'azimuth_offset_deg', 'width',
+               'native_width', 'min_depth', 'max_depth')
+
+
+def _shown(v) -> str:
+  """A spec file's value as JSON shows it (a string quoted, true lowercase)."""
+  text = json.dumps(v) if isinstance(v, (str, bool, int, float)) or v is None else repr(v)
+  return text if len(text) <= 40 else text[:37] + '...'
+
+
+def _number(field: str, v, source: str, whole: bool = False):
+  """A spec file's number (an int where ``whole``); DataError naming
+  ``field`` for a string, a boolean or a fraction."""
+  if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+    raise DataError(f'{source}: {field} must be {"an integer" if whole else "a number"}, '
+                    f'got {_shown(v)}')
+  if whole:
+    if not math.isfinite(v) or v != int(v):
+      raise DataError(f'{source}: {field} must be an integer, got {_shown(v)}')
+    return int(v)
+  return float(v)
+
+
+def _numbers(field: str, v, source: str) -> tuple[float, ...]:
+  """A spec file's per-beam list; DataError naming ``field`` for anything
+  but a list of numbers (a string, a number, a list holding either), or one
+  longer than MAX_BEAMS (refused before it is read)."""
+  if not isinstance(v, (list, tuple, np.ndarray)) or np.ndim(v) != 1:
+    raise DataError(f'{source}: {field} must be a list of numbers, one per beam, top '
+                    f'beam first, got {_shown(v)}')
+  if len(v) > MAX_BEAMS:
+    raise DataError(f'{source}: {field} lists {len(v):,} beams; a spec holds at most '
+                    f'{MAX_BEAMS:,} (a ring id is 16 bits in the drivers\' formats)')
+  bad = [a for a in v if isinstance(a, bool) or
+         not isinstance(a, (int, float, np.integer, np.floating))]
+  if bad:
+    raise DataError(f'{source}: {field} must be a list of numbers, one per beam, top '
+                    f'beam first; it holds {_shown(bad[0])}')
+  return tuple(float(a) for a in v)
+
+
+def first_difference(a: SensorSpec, b: SensorSpec, labels=('a', 'b'),
+                     fields=DATA_FIELDS) -> str | None:
+  """The first of ``fields`` in which two specs differ, as ``'FIELD: LABEL_A
+  value, LABEL_B value'`` (a per-beam field: its beam count, else its first
+  differing beam); None where they agree."""
+  la, lb = labels
+  for f in fields:
+    x, y = getattr(a, f), getattr(b, f)
+    if f in PER_BEAM and len(x) != len(y):
+      return f'{f}: {la} {len(x)} beams, {lb} {len(y)}'
+    if f in PER_BEAM:
+      i = next((i for i, (p, q) in enumerate(zip(x, y)) if p != q), None)
+      if i is not None:
+        return f'{f}[{i}]: {la} {x[i]!r}, {lb} {y[i]!r}'
+    elif x != y:
+      return f'{f}: {la} {x!r}, {lb} {y!r}'
+  return None
 
 
 def load(path: str) -> SensorSpec:
@@ -375,6 +439,17 @@ def from_config(cfg) -> SensorSpec:
   if cfg.get('width') and cfg.width != spec.width:
     spec = with_columns(spec, cfg.width)
   return spec
+
+
+def source_of(cfg) -> str:
+  """Where :func:`from_config` takes a config's spec from, in words."""
+  if cfg.get('spec'):
+    return 'the spec the run recorded (sensor.spec)'
+  if cfg.get('file'):
+    return f'sensor.file={cfg["file"]}'
+  if cfg.get('preset'):
+    return f'preset {cfg["preset"]!r}'
+  return f'a tiny sensor of {cfg.get("height")}x{cfg.get("width")}'
 
 
 def with_columns(spec: SensorSpec, width: int) -> SensorSpec:

@@ -390,13 +390,26 @@ def _check_resumable(workdir: str, config):
   were made by another architecture."""
   if not os.path.isfile(os.path.join(workdir, configs.FILE)):
     return
-  diff = configs.architecture_diff(configs.load(workdir), config)
+  run = configs.load(workdir)
+  diff = configs.architecture_diff(run, config)
   if diff:
-    fields = '; '.join(f'{k}: run has {a!r}, config has {b!r}' for k, (a, b) in diff.items())
+    fields = '; '.join(_sensor_diff(run, config) if k == 'sensor' else
+                       f'{k}: run has {a!r}, config has {b!r}' for k, (a, b) in diff.items())
     raise configs.ConfigError(
         f'{workdir} holds a run of another architecture ({fields}); its checkpoints '
         'cannot be resumed with this config. Use another --workdir, or the '
         "run's own values.")
+
+
+def _sensor_diff(run, config) -> str:
+  """The first field in which a run's sensor and a config's differ, and
+  where the run took its spec from."""
+  a, b = (sensor_lib.from_config(c.sensor) for c in (run, config))
+  diff = sensor_lib.first_difference(a, b, ('run', 'config'), sensor_lib.DATA_FIELDS +
+                                     ('mount_height', 'name'))
+  trained = sensor_lib.source_of(dict(run.sensor, spec=''))
+  return (f'sensor.{diff or "spec"} (the run trained with {trained}; the config gives '
+          f'{sensor_lib.source_of(config.sensor)})')
 
 
 def _peer_lost(workdir: str, reason: str) -> str:
@@ -492,11 +505,13 @@ def _start(config, workdir: str, setup: Setup, mesh, key, log):
   Returns (data_dir, data, angles, batches, manager, state, start step)."""
   sensor, is_main = setup.sensor, jax.process_index() == 0
   data_dir = pipeline.dataset_dir(config, sensor, log=log)
+  # The data checked whole before the run writes anything of its own.
+  arrays.check_sensor(data_dir, sensor, sensor_lib.source_of(config.sensor))
   data = pipeline.TrainingData(data_dir, sensor, config.data.memory_mb,
                                log=log if is_main else lambda m: None)
+  angles = arrays.load_angles(data_dir, sensor)
   data.start_run(workdir, bool(checkpoint.saved_steps(workdir)), config.data.allow_changed,
                  write=is_main)
-  angles = arrays.load_angles(data_dir, sensor)
   batches = pipeline.Batches(data.depth, sensor, config.batch_size, config.seed,
                              jax.process_index(), jax.process_count())
   if is_main:

@@ -18,11 +18,13 @@ import os
 
 import numpy as np
 
+from dusty_jax import sensor as sensor_lib
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec, check_angles
 
 ANGLES = 'angles.npy'
 META = 'meta.json'
+SENSOR = 'sensor.json'  # the spec a prepared folder was unfolded with (prepare.py)
 
 
 def split_path(directory: str, split: str, kind: str = '') -> str:
@@ -233,12 +235,32 @@ def check_values(depth, sensor: SensorSpec, path: str, log=print) -> dict:
   return shares
 
 
+def check_sensor(directory: str, sensor: SensorSpec, named: str):
+  """Refuses ``sensor`` (the config's, ``named`` says whence) where the
+  prepared folder's sensor.json, the spec its data was unfolded with, differs
+  in what the depths depend on (sensor.DATA_FIELDS): one DataError naming
+  both and the first field that differs. A folder without one (simulated,
+  or prepared before prepare wrote it) is not checked."""
+  path = os.path.join(directory, SENSOR)
+  if not os.path.isfile(path):
+    return
+  diff = sensor_lib.first_difference(sensor_lib.load(path), sensor, ('data', 'config'))
+  if diff:
+    raise DataError(f'{path}, the spec the data was prepared with, is not the config\'s '
+                    f'({named}): {diff}; train with --config.sensor.file={path}')
+
+
 def load_angles(directory: str, sensor: SensorSpec) -> np.ndarray:
-  """(2, H, W) angle table of a prepared dataset (nominal if absent)."""
+  """(2, H, W) angle table of a prepared dataset (nominal if absent); a
+  file that is not one is a DataError naming it."""
   path = os.path.join(directory, ANGLES)
   if not os.path.isfile(path):
     return sensor.nominal_angles()
-  arr = np.load(path)
+  npy_layout(path)  # (a pickled array or a file cut short: named)
+  try:
+    arr = np.load(path, allow_pickle=False)
+  except ValueError as e:
+    raise DataError(f'{path}: not a .npy array of angles ({e})') from None
   try:
     check_angles(arr, sensor.shape, f'{path}: ', finite=True)
   except ValueError as e:
@@ -301,8 +323,13 @@ class SplitWriter:
     self.path, self.tmp = path, path + '.tmp.npy'
     self.shape, self.count = tuple(shape), 0
     self.capacity = capacity
-    self.offset = empty_array(self.tmp, (capacity,) + self.shape)
-    self.file = open(self.tmp, 'r+b')
+    try:
+      self.offset = empty_array(self.tmp, (capacity,) + self.shape)
+      self.file = open(self.tmp, 'r+b')
+    except BaseException:  # (no memory or disk for the map): no file is left
+      if os.path.exists(self.tmp):
+        os.remove(self.tmp)
+      raise
     self.file.seek(self.offset)
 
   def append(self, scan: np.ndarray):

@@ -29,6 +29,17 @@ CLUSTER_BIN_DEG = 0.01     # histogram bins of the elevation structure
 OFFSET_GRID_M = np.linspace(-0.1, 0.1, 201)  # the common offsets tried
 OFFSET_MATTERS_M = 0.002   # fitted offsets all below this are left out
 WIDTHS = (2048, 1024, 512, 256)  # image widths an estimate proposes
+# More clusters of elevations than any spinning LiDAR has beams: the points
+# have no beam structure (noise, or not a LiDAR's sweep).
+MAX_BEAMS_FOUND = 1024
+# Sweeps whose beam counts differ by more than this factor are of different
+# sensors (a real sweep's count varies by a few: beams without a return,
+# beams that touch in its elevations).
+SAME_SENSOR_RATIO = 1.5
+# A beam returns at most twice per firing (dual returns); one with more per
+# sweep holds several beams its elevations cannot tell apart.
+MAX_RETURNS_PER_FIRING = 2.5
+NEAREST_CHUNK = 2 ** 22  # points x beams compared at a time (memory bound)
 
 
 @dataclasses.dataclass
@@ -83,9 +94,23 @@ def _fit_lines(sin_el, inv_r, beam, n):
   return a, b, rms
 
 
-def _clusters(sin_el, inv_r, mode):
-  """Beam ids (top first) of points by the structure of their elevations."""
+def _nearest(sin_el, inv_r, a, b, beams):
+  """Of ``beams`` (ids into a, b), the one whose line ``a + b / range`` is
+  nearest to each point's sin(elevation); memory bounded by NEAREST_CHUNK."""
+  out = np.empty(len(sin_el), np.int64)
+  step = max(1, NEAREST_CHUNK // max(len(beams), 1))
+  for i in range(0, len(sin_el), step):
+    y, x = sin_el[i:i + step, None], inv_r[i:i + step, None]
+    out[i:i + step] = beams[np.argmin(np.abs(y - a[beams] - b[beams] * x), axis=1)]
+  return out
+
+
+def _clusters(sin_el, inv_r, mode, source='the sweeps'):
+  """Beam ids (top first) of points by the structure of their elevations;
+  DataError naming ``source`` where they have none (MAX_BEAMS_FOUND)."""
   far = np.ones_like(inv_r, bool) if mode == 'all' else inv_r < 1.0 / CLUSTER_MIN_RANGE
+  if far.sum() < 100:  # (a sweep of a room: every point near)
+    far = np.ones_like(inv_r, bool)
   y, x = sin_el[far], inv_r[far]
   lo, hi = y.min(), y.max()
   bins = max(int((hi - lo) / np.sin(np.deg2rad(CLUSTER_BIN_DEG))) + 1, 1)
@@ -101,11 +126,43 @@ def _clusters(sin_el, inv_r, mode):
   # A beam is a run of occupied bins; runs split at an empty bin.
   starts = np.flatnonzero(occupied & ~np.r_[False, occupied[:-1]])
   ends = np.flatnonzero(occupied & ~np.r_[occupied[1:], False])
+  if len(starts) > MAX_BEAMS_FOUND:
+    lo_deg, hi_deg = np.rad2deg(np.arcsin(np.percentile(y, [1, 99])))
+    raise DataError(
+        f'{source}: no beam structure found: the elevations of its returns '
+        f'({lo_deg:.1f} to {hi_deg:.1f} degrees, 1st-99th percentile) fall into '
+        f'{len(starts):,} clusters, more than the {MAX_BEAMS_FOUND} beams any spinning '
+        'LiDAR has; not a LiDAR sweep? Give its sensor spec instead (--sensor PATH)')
   centres = np.array([np.average(0.5 * (edges[s:e + 1] + edges[s + 1:e + 2]),
                                  weights=hist[s:e + 1]) for s, e in zip(starts, ends)])
   centres = np.sort(centres)[::-1]  # top first
-  beam = np.argmin(np.abs(corrected[:, None] - centres[None, :]), axis=1)
+  beam = _nearest(corrected, np.zeros_like(corrected), centres, np.zeros_like(centres),
+                  np.arange(len(centres)))
   return beam, len(centres), common
+
+
+def _beam_count(p, ring, source) -> int:
+  """Beams in one sweep: its ring ids, else its clusters of elevations."""
+  if ring is not None:
+    return len(np.unique(ring))
+  rng = np.linalg.norm(p, axis=1)
+  keep = np.isfinite(rng) & (rng > 0)
+  if keep.sum() < 100:
+    raise DataError(f'{source}: only {int(keep.sum())} returns; a sweep has thousands')
+  return _clusters(p[keep, 2] / rng[keep], 1.0 / rng[keep], 'far', source)[1]
+
+
+def _check_one_sensor(xyz, rings, sources):
+  """DataError naming two sweeps where their beam counts say they are of
+  different sensors (SAME_SENSOR_RATIO)."""
+  counts = [_beam_count(p, r, s) for p, r, s in zip(xyz, rings, sources)]
+  lo, hi = int(np.argmin(counts)), int(np.argmax(counts))
+  if counts[hi] > SAME_SENSOR_RATIO * counts[lo]:
+    raise DataError(
+        f'the sweeps to estimate from are of different sensors: {sources[hi]} shows '
+        f'{counts[hi]} beams, {sources[lo]} {counts[lo]} (beam counts of all '
+        f'{len(counts)}: {counts}); estimate from one sensor\'s sweeps: move the others '
+        'out, or list one sensor\'s in train.txt')
 
 
 def _firings(azimuth, beam, n) -> int:
@@ -122,8 +179,35 @@ def _firings(azimuth, beam, n) -> int:
   return int(round(2 * np.pi / np.median(steps)))
 
 
+def _named(sources) -> str:
+  """The sweeps of an estimate in a few words: one or two by name, else the
+  first and how many more."""
+  if len(sources) <= 2:
+    return ' and '.join(sources)
+  return f'{sources[0]} and {len(sources) - 1} more sweeps'
+
+
+def _check_beams(a, own, firings, sweeps, sources):
+  """DataError for fewer than two beams, or a beam with more returns per
+  sweep than its firings allow (MAX_RETURNS_PER_FIRING): beams merged."""
+  per_sweep = np.bincount(own, minlength=len(a)) / sweeps
+  worst = int(np.argmax(per_sweep))
+  el = np.rad2deg(np.arcsin(np.clip(a, -1, 1)))
+  merged = per_sweep[worst] > MAX_RETURNS_PER_FIRING * firings
+  if len(a) >= 2 and not merged:
+    return
+  found = f'found {len(a)} beam{"s" if len(a) > 1 else ""} in {_named(sources)}'
+  why = (f'the one at {el[worst]:.3f} degrees has {per_sweep[worst]:,.0f} returns per '
+         f'sweep, {per_sweep[worst] / firings:.1f} per firing of the {firings} measured: '
+         'several beams merged' if merged else 'a range image needs several')
+  raise DataError(
+      f'{found}; {why}; beams closer than {CLUSTER_BIN_DEG} degrees cannot be told apart '
+      'by their elevations: give the sensor\'s spec instead (--sensor PATH)')
+
+
 def estimate(sweeps, ring=None, name: str = 'estimated',
-             mount_height: float = 1.73, width: int | None = None) -> Estimate:
+             mount_height: float = 1.73, width: int | None = None,
+             sources=None) -> Estimate:
   """Estimates a sensor spec from one or more sweeps.
 
   Args:
@@ -135,6 +219,13 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
     mount_height: not measurable from the points; recorded as given.
     width: image columns; default the largest of WIDTHS not above the
       measured firings per revolution.
+    sources: per sweep, its name (a path) for errors.
+
+  Refused, in a DataError naming the sweeps: sweeps whose beam counts say
+  they are of different sensors; points with no beam structure (more
+  clusters of elevations than MAX_BEAMS_FOUND); fewer than two beams, or a
+  beam with more returns per sweep than MAX_RETURNS_PER_FIRING times the
+  firings (beams closer than the elevations tell apart, merged).
   """
   xyz, rings = [], []
   sweeps = list(sweeps)
@@ -149,6 +240,9 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
       r = None if ring is None else ring[i]
     rings.append(None if r is None else np.asarray(r))
     xyz.append(p)
+  sources = list(sources) if sources is not None else [f'sweep {i}' for i in range(len(xyz))]
+  if len(xyz) > 1:
+    _check_one_sensor(xyz, rings, sources)
   use_ring = all(r is not None for r in rings)
   rng = [np.linalg.norm(p, axis=1) for p in xyz]
   keep = [np.isfinite(r) & (r > 0) for r in rng]
@@ -186,12 +280,10 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   else:
     best = None
     for mode in ('all', 'far'):  # all points vote, or only the far ones
-      beam, n, _ = _clusters(sin_el, inv_r, mode)
+      beam, n, _ = _clusters(sin_el, inv_r, mode, _named(sources))
       for _ in range(3):  # fit lines, reassign each point to its nearest
         a, b, rms = _fit_lines(sin_el, inv_r, beam, n)
-        live = np.flatnonzero(np.isfinite(a))
-        cost = np.abs(sin_el[:, None] - a[live] - b[live] * inv_r[:, None])
-        beam = live[np.argmin(cost, axis=1)]
+        beam = _nearest(sin_el, inv_r, a, b, np.flatnonzero(np.isfinite(a)))
       a, b, rms = _fit_lines(sin_el, inv_r, beam, n)
       score = np.sqrt(np.mean(np.nan_to_num(rms) ** 2))
       if best is None or score < best[0]:
@@ -206,9 +298,9 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   row_of = np.empty(len(top_first), np.int64)
   row_of[top_first] = np.arange(len(top_first))
   own = row_of[beam]
-  nearest = np.argmin(np.abs(sin_el[:, None] - a[None, :] - b[None, :] *
-                             inv_r[:, None]), axis=1)
+  nearest = _nearest(sin_el, inv_r, a, b, np.arange(len(a)))
   firings = _firings(azimuth, own, len(a))
+  _check_beams(a, own, firings, len(xyz), sources)
   if width is None:
     width = next((w for w in WIDTHS if w <= firings), max(16, firings // 16 * 16))
   offsets = b if np.max(np.abs(b)) >= OFFSET_MATTERS_M else ()

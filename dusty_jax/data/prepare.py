@@ -8,17 +8,22 @@ The command line is ``python -m dusty_jax.tools.prepare``.
 One unreadable or malformed scan is reported and skipped, with a count at the
 end; it never stops the conversion or drops silently. So is a scan with far
 too few points to be a LiDAR scan (fewer than MIN_VALID_FRACTION of its
-pixels valid, or returns on fewer than MIN_RING_FRACTION of its rings).
+pixels valid, or returns on fewer than MIN_RING_FRACTION of its rings), and
+a sweep of another sensor (unfolding.NotThisSensor: its returns fill far
+fewer pixels than the spec's sensor would; counted apart).
 Arguments and inputs are checked before anything is created; a split that
 now yields no scan has its old array removed (said so), and a run that finds
-no scan at all fails. Each split is written scan by scan, so memory does not
-grow with the number of scans (benchmarks/prepare_memory.py).
+no scan at all fails, naming the first file's reason (an ``out`` it made is
+removed again). Each split is written scan by scan, so memory does not grow
+with the number of scans (benchmarks/prepare_memory.py).
 """
 
 from __future__ import annotations
 
+import collections
 import fnmatch
 import os
+import shutil
 import sys
 import warnings
 
@@ -31,7 +36,7 @@ from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec, get_sensor
 
 SPLITS = ('train', 'val', 'test')
-SENSOR_FILE = 'sensor.json'  # the spec a prepared folder was unfolded with
+SENSOR_FILE = arrays.SENSOR  # the spec a prepared folder was unfolded with
 # A seeded split of a folder of files: the share of each split.
 FILE_SPLIT = {'train': 0.8, 'val': 0.1, 'test': 0.1}
 ESTIMATE_SWEEPS = 8  # training sweeps that --sensor auto estimates from
@@ -59,6 +64,23 @@ class Files:
                                         fnmatch.fnmatch(rel, self.pattern))):
           found.append(path)
     return sorted(found)
+
+  def nothing_found(self, root: str) -> str:
+    """Why no file under ``root`` is a sweep to prepare: what the pattern
+    matched and what the folder holds, by file name ending."""
+    if any(os.path.isfile(os.path.join(root, f'{s}.txt')) for s in SPLITS):
+      return (f'{root}: its split lists ({", ".join(f"{s}.txt" for s in SPLITS)}) name no '
+              'file for the splits asked')
+    ends = collections.Counter()
+    for _, _, names in os.walk(root):
+      ends.update(points.format_of(n) or os.path.splitext(n)[1] or '(no extension)'
+                  for n in names)
+    held = (', '.join(f'{n} {e}' for e, n in ends.most_common(6)) +
+            (', ...' if len(ends) > 6 else '')) if ends else 'no file at all'
+    which = (f'match --pattern {self.pattern!r}' if self.pattern != '*' else
+             'are point files')
+    return (f'{root}: no files under it {which} (it holds {held}; point files end in '
+            f'{", ".join(sorted(points.READERS))})')
 
   def list_split(self, root: str, split: str) -> list[str]:
     lists = {s: os.path.join(root, f'{s}.txt') for s in SPLITS}
@@ -93,6 +115,9 @@ class Files:
 READERS = {'kitti': kitti, 'mpo': mpo, 'files': Files()}
 MIN_VALID_FRACTION = 0.05  # a real scan returns on most of its pixels
 MIN_RING_FRACTION = 0.25
+# A scan on few of the spec's rows, those rows this full, is a sweep of a
+# sensor of fewer beams than the spec (a random scatter fills a few pixels).
+MIN_FULL_ROWS = 0.25
 
 
 def junk_reason(depth, sensor: SensorSpec) -> str | None:
@@ -100,6 +125,11 @@ def junk_reason(depth, sensor: SensorSpec) -> str | None:
   valid = np.asarray(codec.valid_depth(depth, sensor))
   frac = valid.mean()
   rings = int(valid.any(axis=1).sum())
+  full = valid[valid.any(axis=1)].mean() if rings else 0.0
+  if rings < MIN_RING_FRACTION * sensor.height and full >= MIN_FULL_ROWS:
+    return (f'returns on only {rings} of the {sensor.height} rows of sensor '
+            f'{sensor.name!r}, those {100 * full:.0f}% full: a sweep of {rings} beams, '
+            f'not of the spec\'s {sensor.height}; is the spec the data\'s sensor?')
   if frac < MIN_VALID_FRACTION:
     return (f'only {valid.sum()} valid pixels ({100 * frac:.2f}% < '
             f'{100 * MIN_VALID_FRACTION:.0f}%): not a full LiDAR scan')
@@ -111,12 +141,14 @@ def junk_reason(depth, sensor: SensorSpec) -> str | None:
 def convert_split(paths, load, sensor: SensorSpec, target: str, angle_acc=None,
                   desc='scans', log=print):
   """Converts files into the (N, H, W) depth array ``target``, scan by scan
-  (memory does not grow with N); returns (N, skipped).
+  (memory does not grow with N).
 
-  ``skipped`` lists (path, reason) for every file that failed. With no scan,
-  nothing is written (an old ``target`` is left for the caller to remove).
+  ``skipped`` lists (path, reason) for every file that failed; ``foreign``
+  how many of them are not sweeps of ``sensor`` (unfolding.NotThisSensor).
+  With no scan, nothing is written (an old ``target`` is left for the caller
+  to remove). Returns (N, skipped, foreign).
   """
-  skipped = []
+  skipped, foreign = [], 0
   writer = arrays.SplitWriter(target, len(paths), sensor.shape)
   try:
     for path in tqdm.tqdm(paths, desc=desc, unit='scan', file=sys.stderr,
@@ -129,6 +161,7 @@ def convert_split(paths, load, sensor: SensorSpec, target: str, angle_acc=None,
           log(f'warning: {w.message}')
       except (ValueError, OSError) as e:
         skipped.append((path, str(e)))
+        foreign += isinstance(e, unfolding.NotThisSensor)
         log(f'skipped: {e}')
         continue
       reason = junk_reason(depth, sensor)
@@ -142,7 +175,7 @@ def convert_split(paths, load, sensor: SensorSpec, target: str, angle_acc=None,
   except BaseException:
     writer.abort()
     raise
-  return writer.close(), skipped
+  return writer.close(), skipped, foreign
 
 
 def _kept_splits(out: str, splits, sensor: SensorSpec) -> dict:
@@ -166,14 +199,26 @@ def _kept_splits(out: str, splits, sensor: SensorSpec) -> dict:
 
 def estimate_sensor(paths, out: str, log=print) -> SensorSpec:
   """``prepare --sensor auto``: a spec estimated from up to ESTIMATE_SWEEPS
-  of ``paths``, printed with its fit and written to ``out/sensor.json``."""
+  of ``paths``, printed with its fit and written to ``out/sensor.json``. A
+  file that cannot be read is skipped with one line, as the conversion
+  skips it."""
   if not paths:
     raise DataError('--sensor auto: no training files to estimate the sensor from')
   chosen = paths[:: max(1, len(paths) // ESTIMATE_SWEEPS)][:ESTIMATE_SWEEPS]
-  fit = estimate.estimate([points.read_points(p) for p in chosen],
+  sweeps, read = [], []
+  for p in chosen:
+    try:
+      sweeps.append(points.read_points(p))
+      read.append(p)
+    except (ValueError, OSError) as e:
+      log(f'skipped: {e}')
+  if not sweeps:
+    raise DataError(f'--sensor auto: none of the {len(chosen)} training files chosen to '
+                    'estimate the sensor from could be read (see the reasons above)')
+  fit = estimate.estimate(sweeps, sources=read,
                           name=os.path.basename(os.path.normpath(out)) or 'estimated')
   log(fit.summary())
-  log(f'(from {len(chosen)} training sweeps; the spec is written to '
+  log(f'(from {len(read)} training sweeps; the spec is written to '
       f'{os.path.join(out, SENSOR_FILE)}: review it)')
   return fit.spec
 
@@ -208,6 +253,8 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
                     'file, or auto (estimated from the files)')
   listed = {split: reader.list_split(root, split) for split in splits}
   if not any(listed.values()):
+    if isinstance(reader, Files):
+      raise FileNotFoundError(reader.nothing_found(root))
     raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '
                             f'{list(splits)} (is this the dataset root?)')
   if isinstance(sensor, str):
@@ -216,6 +263,17 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
               if sensor == 'auto' else get_sensor(sensor))
   sensor = sensor or get_sensor(dataset)
   kept = _kept_splits(out, splits, sensor)
+  made = not os.path.exists(out)
+  try:
+    return _write(dataset, root, out, reader, listed, sensor, kept, log)
+  except BaseException:
+    if made:  # a folder this run made holds only what it wrote: nothing is left
+      shutil.rmtree(out, ignore_errors=True)
+    raise
+
+
+def _write(dataset, root, out, reader, listed, sensor, kept, log) -> dict:
+  """:func:`prepare`'s writing, once its inputs are checked."""
   old = arrays.read_meta(out)
   os.makedirs(out, exist_ok=True)
   sensor_lib.save(sensor, os.path.join(out, SENSOR_FILE))
@@ -223,12 +281,13 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
           'splits': dict(kept),
           'skipped': {s: old.get('skipped', {}).get(s, []) for s in kept}}
   acc = unfolding.AngleAccumulator(sensor)
-  for split in splits:
-    paths = listed[split]
+  first_skip = None
+  for split, paths in listed.items():
     target = arrays.split_path(out, split)
-    count, skipped = convert_split(
+    count, skipped, foreign = convert_split(
         paths, reader.load_scan, sensor, target,
         angle_acc=acc if split == 'train' else None, desc=split, log=log)
+    first_skip = first_skip or (skipped[0] if skipped else None)
     if not count and os.path.isfile(target):
       os.remove(target)  # a stale array from an earlier run must not be used
       log(f'{split}: removed the old {target} (this run found no scan for it)')
@@ -236,18 +295,22 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
       log(f'{split}: no files found, split not written')
     meta['splits'][split] = int(count)
     meta['skipped'][split] = [{'path': p, 'reason': r} for p, r in skipped]
-    log(f'{split}: {count} scans written, {len(skipped)} skipped')
+    log(f'{split}: {count} scans written, {len(skipped)} skipped' +
+        (f' ({foreign} not sweeps of sensor {sensor.name!r})' if foreign else ''))
   angles = os.path.join(out, arrays.ANGLES)
   if acc.count.sum():
     arrays.save_array(angles, acc.result())
-  elif 'train' in splits and os.path.isfile(angles):
+  elif 'train' in listed and os.path.isfile(angles):
     os.remove(angles)
     log(f'removed the old {angles} (no training scan to estimate it from)')
   # What each split array is, for training to check (identity.py).
   meta['identity'] = {split: identity.of_file(arrays.split_path(out, split), whole=True)
                    for split in SPLITS if os.path.isfile(arrays.split_path(out, split))}
   arrays.write_meta(out, meta)
-  if not sum(meta['splits'][s] for s in splits):
-    raise DataError(f'{root}: every scan file was skipped; nothing prepared '
-                    '(see the reasons above)')
+  if not sum(meta['splits'][s] for s in listed):
+    files = sum(len(p) for p in listed.values())
+    path, reason = first_skip
+    reason = reason if reason.startswith(path) else f'{path}: {reason}'
+    raise DataError(f'{root}: every scan file was skipped, nothing prepared; the first '
+                    f'of {files}: {reason}')
   return meta

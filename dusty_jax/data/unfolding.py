@@ -237,6 +237,19 @@ def spherical_projection(points: np.ndarray, sensor: SensorSpec,
 
 # A file whose points mostly fall outside the spec is not of this sensor.
 MIN_INSIDE_SHARE = 0.5
+# Nor is one whose returns on the beams and in range a spec places in far
+# fewer pixels than a sweep of its sensor fills: one pixel per firing that
+# its columns keep (width / native_width of them), each firing on its own
+# beam. Dual returns place half; another sensor's sweep, its beams between
+# the spec's and its firings between the kept ones, places a fifth (KITTI's
+# HDL-64E in a 16-beam spec of 256 of 1800 columns: 0.18 to 0.23).
+MIN_PLACED_OF_NORM = 1 / 3
+# Too few returns to judge by the share they fill (a few stray points).
+MIN_PLACED_EXPECTED = 100
+
+
+class NotThisSensor(DataError):
+  """A sweep that the spec cannot be the sensor of (:func:`unfold`)."""
 # A ring whose median elevation lies farther than this many beam spacings
 # outside the spec's top or bottom beam is not one of its beams.
 RING_MARGIN_SPACINGS = 1.0
@@ -361,8 +374,11 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
   (benchmarks/sensors.py). Where two points fall in one pixel the nearer is
   kept (dual returns). Points at the origin or NaN (placeholders of
   beams without a return), outside the spec's range, or off its beams are
-  dropped and counted. A sweep whose returns mostly fall outside the spec is
-  refused (DataError naming ``source``, its elevations and the spec's).
+  dropped and counted. A sweep whose returns mostly fall outside the spec, or
+  whose returns on its beams fill far fewer pixels than a sweep of its sensor
+  (below MIN_PLACED_OF_NORM of width / native_width of them: another
+  sensor's beams and firings between the spec's), is refused (NotThisSensor,
+  a DataError naming ``source`` and what it found against the spec).
   """
   if isinstance(points, dict):
     try:
@@ -405,7 +421,7 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
   if 1 - np.mean(inside & in_range) > MIN_INSIDE_SHARE:
     el = np.rad2deg(np.arcsin(np.clip(sin_el, -1, 1)))
     lo, hi = np.percentile(el, [1, 99])
-    raise DataError(
+    raise NotThisSensor(
         f'{source}: {np.mean(~inside):.0%} of its returns lie off the beams and '
         f'{np.mean(~in_range):.0%} outside the range of sensor {sensor.name!r}: '
         f'its elevations span {lo:.1f} to {hi:.1f} degrees (1st-99th '
@@ -429,6 +445,16 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
   seen = np.isfinite(best)
   depth = np.where(seen, best, 0.0).astype(np.float32).reshape(h, w)
   placed = int(seen.sum())
+  eligible = int((inside & in_range).sum())
+  norm = sensor.width / sensor.native_width
+  if (eligible * norm >= MIN_PLACED_EXPECTED and
+      placed < MIN_PLACED_OF_NORM * norm * eligible):
+    raise NotThisSensor(
+        f'{source}: not a sweep of sensor {sensor.name!r}: {placed:,} of its {eligible:,} '
+        f'returns on the beams and in range fill a pixel ({placed / eligible:.1%}), where '
+        f'a sweep of the spec fills one per kept firing ({norm:.1%}: width '
+        f'{sensor.width} of native_width {sensor.native_width}); another sensor\'s '
+        'sweep (move it out), or a spec whose beams or firings are not this data\'s')
   image = image.reshape(h, w, 3)
   return Unfolded(
       depth=depth, xyz=image, points=n, no_return=int(n - returned.sum()),
