@@ -18,7 +18,10 @@ In the directory dusty_jax chose, once per process:
   * an entry JAX cannot read (cut short, overwritten) is deleted, with one
     line, so that JAX compiles the program and writes it again (JAX itself
     warns on every run and never replaces it). Each entry is checked once,
-    by the first process that starts after it was written;
+    by the first process that starts after it was written; one that is
+    unreadable and only just written is read again after SETTLE_S, as JAX
+    writes an entry in one call: unchanged and still unreadable then, it is
+    damaged, not being written;
   * a directory that cannot be written gives one line; the programs found
     there are used and new ones are compiled without being written.
 """
@@ -52,7 +55,12 @@ MIN_COMPILE_SECS = 0.2
 _JAX_DEFAULT_MIN_SECS = 1.0
 ENTRY_SUFFIX = '-cache'  # JAX's name for an entry's file (its '-atime' files beside)
 CHECKED = '.dusty_jax_checked'  # its modification time: entries older are checked
-RECENT_S = 60  # an entry this new may still be being written: checked next time
+# JAX writes an entry with one write call (lru_cache.LRUCache.put): one that
+# is unreadable and unchanged for this long is damaged, not being written.
+SETTLE_S = 0.5
+# Entries changed this long before a check began are checked again by the
+# next (file times may be this coarse).
+MTIME_GRAIN_S = 2.0
 # No compiled program is this large: JAX writes none (a read-only cache).
 NEVER_WRITE_BYTES = 2**62
 
@@ -126,9 +134,9 @@ def readable(data: bytes) -> bool:
 
 def remove_damaged(path: str) -> list[str] | None:
   """Deletes the entries under ``path`` that JAX could not read, among those
-  changed since the last check; returns their file names, or None where
-  ``path`` cannot be written (nothing is checked then: nothing could be
-  repaired)."""
+  changed since the last check (one just written: once it is SETTLE_S old
+  and unchanged); returns their file names, or None where ``path`` cannot
+  be written (nothing is checked then: nothing could be repaired)."""
   stamp = os.path.join(path, CHECKED)
   try:
     fd, fresh = tempfile.mkstemp(dir=path, prefix=CHECKED)
@@ -139,20 +147,33 @@ def remove_damaged(path: str) -> list[str] | None:
     since = os.stat(stamp).st_mtime
   except OSError:  # never checked
     since = 0.0
-  until = time.time() - RECENT_S
-  removed = []
+  start = time.time()
+  removed, young = [], []
   for entry in os.scandir(path):
     try:
-      if not entry.name.endswith(ENTRY_SUFFIX) or not since <= entry.stat().st_mtime < until:
+      if not entry.name.endswith(ENTRY_SUFFIX):
         continue
-      with open(entry.path, 'rb') as f:
-        if readable(f.read()):
-          continue
-      os.remove(entry.path)
+      st = entry.stat()
+      if st.st_mtime < since or _readable_file(entry.path):
+        continue
+      if start - st.st_mtime < SETTLE_S:  # maybe being written: read again below
+        young.append((entry, (st.st_size, st.st_mtime_ns)))
+        continue
+      _remove(entry.path)
       removed.append(entry.name)
-      os.remove(entry.path[:-len(ENTRY_SUFFIX)] + '-atime')
-    except OSError:  # gone meanwhile (evicted by another process), no atime file
+    except OSError:  # gone meanwhile (evicted by another process)
       continue
+  if young:
+    time.sleep(SETTLE_S)
+    for entry, before in young:
+      try:
+        st = os.stat(entry.path)
+        if (st.st_size, st.st_mtime_ns) == before and not _readable_file(entry.path):
+          _remove(entry.path)
+          removed.append(entry.name)
+      except OSError:
+        continue
+  until = start - MTIME_GRAIN_S
   try:
     os.utime(fresh, (until, until))
     os.replace(fresh, stamp)
@@ -160,3 +181,15 @@ def remove_damaged(path: str) -> list[str] | None:
     with contextlib.suppress(OSError):
       os.remove(fresh)
   return removed
+
+
+def _readable_file(path: str) -> bool:
+  with open(path, 'rb') as f:
+    return readable(f.read())
+
+
+def _remove(path: str):
+  """Deletes an entry and its access-time file (JAX's, where it keeps one)."""
+  os.remove(path)
+  with contextlib.suppress(OSError):
+    os.remove(path[:-len(ENTRY_SUFFIX)] + '-atime')

@@ -7,7 +7,9 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
+import zlib
 
 import numpy as np
 import pytest
@@ -98,12 +100,12 @@ def test_a_damaged_entry_is_deleted_and_written_again(tmp_path):
   folder = tmp_path / 'xla'
   written = _entries(folder)
   assert len(written) >= 2 and all(map(xla_cache.readable, written.values())), written.keys()
-  # Since the last check, one entry cut short, another overwritten (not
-  # just now: a write in progress is left for a later check); others intact.
+  # Since the last check, one entry cut short, another overwritten; others
+  # intact.
   cut, overwritten, *intact = sorted(written)
   (folder / cut).write_bytes(written[cut][:len(written[cut]) // 2])
   (folder / overwritten).write_bytes(np.random.default_rng(0).bytes(2000))
-  checked, changed = time.time() - 10 * xla_cache.RECENT_S, time.time() - 2 * xla_cache.RECENT_S
+  checked, changed = time.time() - 100, time.time() - 50
   os.utime(folder / xla_cache.CHECKED, (checked, checked))
   for name in written:
     os.utime(folder / name, (changed, changed))
@@ -118,6 +120,29 @@ def test_a_damaged_entry_is_deleted_and_written_again(tmp_path):
   # The next process finds nothing to say.
   out, err = _stderr_lines(_COMPILE, env)
   assert out == first and err == [] and _entries(folder) == again
+
+
+def test_an_entry_damaged_just_now_is_repaired_at_once_one_being_written_kept(tmp_path):
+  """An unreadable entry written just now is read again after SETTLE_S: the
+  one left as it was is damaged and goes (with its access-time file), the
+  one whose write completes meanwhile stays."""
+  good = zlib.compress(bytes(100))
+  (tmp_path / 'a-cache').write_bytes(good)
+  (tmp_path / 'b-cache').write_bytes(good[:5])  # damaged just now
+  (tmp_path / 'b-atime').write_bytes(bytes(8))
+  (tmp_path / 'c-cache').write_bytes(good[:5])  # being written
+  finish = threading.Timer(xla_cache.SETTLE_S / 4, (tmp_path / 'c-cache').write_bytes, (good,))
+  finish.start()
+  try:
+    assert xla_cache.remove_damaged(str(tmp_path)) == ['b-cache']
+  finally:
+    finish.join()
+  assert sorted(os.listdir(tmp_path)) == [xla_cache.CHECKED, 'a-cache', 'c-cache']
+  assert (tmp_path / 'c-cache').read_bytes() == good
+  # One damaged since the last check, and older than SETTLE_S: it goes too.
+  (tmp_path / 'a-cache').write_bytes(b'junk')
+  os.utime(tmp_path / 'a-cache', (time.time() - 1, time.time() - 1))
+  assert xla_cache.remove_damaged(str(tmp_path)) == ['a-cache']
 
 
 # In a cache where a new file fails as on a read-only mount (the tests may
