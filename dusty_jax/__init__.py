@@ -8,6 +8,7 @@ Public API:
   generate(params, z, key) -> the same dict for given latents z
   invert(params, scan, ...) -> latent search reconstruction
   render_drops(params, scan) -> realistic point-drops for a clean scan
+  restore(params, depth, known) -> a damaged or sparse scan filled (restoration.py)
 
 Command lines: ``python -m dusty_jax.train`` and ``python -m dusty_jax.tools.NAME``.
 """
@@ -27,6 +28,7 @@ _API = {
     'load_checkpoint': ('dusty_jax.generator', 'load'),
     'load_pretrained': ('dusty_jax.pretrained', 'load_pretrained'),
     'render_drops': ('dusty_jax.inversion', 'render_drops'),
+    'restore': ('dusty_jax.restoration', 'restore'),
     'sample': ('dusty_jax.sampling', 'sample'),
 }
 
@@ -36,6 +38,7 @@ if TYPE_CHECKING:  # what the names are, for readers and type checkers
   from dusty_jax.generator import GeneratorParams, load as load_checkpoint
   from dusty_jax.inversion import invert, render_drops
   from dusty_jax.pretrained import load_pretrained
+  from dusty_jax.restoration import restore
   from dusty_jax.sampling import generate, sample
   from dusty_jax.sensor import SensorSpec, get_sensor
 

@@ -30,6 +30,23 @@ def beams(scan, k: int, offset: int = 0):
   return jnp.where(rows[:, None], scan, ALPHA)
 
 
+def kept(spec: str, key, shape):
+  """The pixels a corruption keeps (bool, ``shape``): what a restoration
+  may treat as known. ``noise`` keeps every pixel (and moves it)."""
+  name, v = parse(spec)
+  if name == 'drop':  # as drop()
+    return jax.random.uniform(key, shape) >= v
+  if name == 'beams':
+    rows = (jnp.arange(shape[-2]) % int(v)) == 0
+    return jnp.broadcast_to(rows[:, None], shape)
+  return jnp.ones(shape, bool)
+
+
+def removes(spec: str) -> bool:
+  """Whether a corruption removes pixels (so that filling them is the task)."""
+  return parse(spec)[0] in ('drop', 'beams')
+
+
 def noise(key, scan, sigma: float, sensor: SensorSpec):
   depth, valid = codec.decode(scan, sensor)
   span = sensor.max_depth - sensor.min_depth

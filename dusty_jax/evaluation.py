@@ -20,10 +20,13 @@ import jax
 import numpy as np
 import tqdm
 
-from dusty_jax import codec, corrupt, inversion, levels, sampling, writers
+import time
+
+from dusty_jax import codec, corrupt, inversion, levels, restoration as restoration_lib, sampling, writers
 from dusty_jax.data import arrays
 from dusty_jax.generator import GeneratorParams
-from dusty_jax.metrics import calibration, ground_truth, protocol, reconstruction, records
+from dusty_jax.metrics import (calibration, ground_truth, protocol, reconstruction, records,
+                               restoration as fill_metrics)
 
 SAMPLE_SEED = 1000  # generated set s is sampled with key(SAMPLE_SEED + s).
 TRAINING_ROW = 'training set'  # the label of the train vs test row
@@ -153,6 +156,47 @@ def restore_batches(params: GeneratorParams, depth, *, corruption: str = '',
     res = jax.device_get(inversion.invert(params, target, key=draws(k_search, idx),
                                           num_steps=num_steps, init=init))
     yield start, d, clean, target, res
+
+
+def corruption_known(corruption: str, num: int, shape, seed: int = 0) -> np.ndarray:
+  """(num, H, W) bool: the pixels ``corruption`` keeps of scans 0..num-1,
+  drawn as :func:`restore_batches` draws them (RESTORE_KEYS)."""
+  k_corrupt = jax.random.split(jax.random.key(seed))[0]
+  return np.stack([np.asarray(corrupt.kept(corruption, jax.random.fold_in(k_corrupt, i),
+                                           tuple(shape)))
+                   for i in range(num)]) if num else np.zeros((0,) + tuple(shape), bool)
+
+
+def fill(params: GeneratorParams, depth, *, corruption: str, method: str, seed: int = 0,
+         num_steps: int = restoration_lib.INVERSION_STEPS, progress: bool = False) -> dict:
+  """How ``restoration.restore(method)`` fills what ``corruption`` (one that
+  removes pixels: drop, beams) removes from scans of metric ``depth``
+  (N, H, W): metrics.restoration's scores per scan on the removed returns,
+  and the wall seconds per scan (one scan at a time; the first call, which
+  compiles, is repeated and not counted)."""
+  if not corrupt.removes(corruption):
+    raise ValueError(f'corruption {corruption!r} removes no pixel: nothing to fill')
+  depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+  known = corruption_known(corruption, len(depth), params.sensor.shape, seed)
+  k_search = jax.random.split(jax.random.key(seed))[1]
+  run = lambda i: restoration_lib.restore(
+      params, np.where(known[i], depth[i], 0.0), known[i], method=method,
+      key=jax.random.fold_in(k_search, i), num_steps=num_steps)
+  if len(depth):
+    run(0)  # compiles (inversion, learned): not timed
+  filled, seconds = [], []
+  for i in tqdm.trange(len(depth), desc=f'{method} {corruption}', file=sys.stderr,
+                       disable=not progress):
+    t = time.perf_counter()
+    filled.append(run(i)['depth'])
+    seconds.append(time.perf_counter() - t)
+  scores = fill_metrics.scores(np.stack(filled), depth, known, params.angles, params.sensor)
+  return {'method': method, 'corrupt': corruption, 'num': len(depth), 'seed': seed,
+          'steps': num_steps if method == 'inversion' else None,
+          'mean': {k: records.finite_mean(v) for k, v in scores.items()},
+          'seconds_per_scan': float(np.median(seconds)) if seconds else None,
+          'per_scan': [{k: float(v[i]) for k, v in scores.items()}
+                       for i in range(len(depth))]}
 
 
 def fit_levels(params: GeneratorParams, depth, *, num: int = LEVEL_SCANS,

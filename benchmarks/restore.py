@@ -1,0 +1,166 @@
+"""Restoration: every method against every corruption, error against time.
+
+    python benchmarks/restore.py [--model sim-dusty1] [--split test] [--num 32]
+        [--methods nearest,linear,morphological,learned,inversion] [--out benchmarks/results]
+
+Corrupts held-out simulated HDL-64E scans (the main command's cached data,
+split --split) and, where ../shared/data/kitti-sample holds them, the real
+KITTI scans (64 x 256 as the authors subsample them), then fills the removed
+pixels with each method of ``dusty_jax.restore``: the classical baselines,
+the learned fill and the paper's GAN inversion (300 iterations). Scores the
+removed returns (evaluation.fill: AbsRel, MAE, the same on depth edges,
+Chamfer) and times one scan at a time (median; the call that compiles not
+counted). Writes restore.json and restore.png (AbsRel against seconds per
+scan), and restore_kitti.png (a real scan's beams:4 restored by each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+import common
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CORRUPTIONS = ('beams:2', 'beams:4', 'beams:8', 'drop:0.5', 'drop:0.9')
+METHODS = ('nearest', 'linear', 'morphological', 'learned', 'inversion')
+KITTI_SAMPLE = os.path.join(HERE, '..', '..', 'shared', 'data', 'kitti-sample')
+
+
+def parse_args(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument('--model', default='sim-dusty1')
+  p.add_argument('--split', default='test', choices=['val', 'test'])
+  p.add_argument('--num', type=int, default=32, help='simulated scans')
+  p.add_argument('--inversion_num', type=int, default=8,
+                 help='of those, how many inversion restores (1-2 s each)')
+  p.add_argument('--methods', default=','.join(METHODS))
+  p.add_argument('--corruptions', default=','.join(CORRUPTIONS))
+  p.add_argument('--out', default=os.path.join(HERE, 'results'))
+  return p.parse_args(argv)
+
+
+def datasets(params, split: str, num: int):
+  """{name: (N, H, W) metres}: simulated scans and the KITTI sample."""
+  from experiments import synthetic
+  from dusty_jax.data import arrays, kitti, pipeline
+  d = pipeline.dataset_dir(synthetic.get_config(), params.sensor)
+  out = {f'simulated {split}': np.asarray(arrays.load_split(d, split, params.sensor)[:num])}
+  files = sorted(f for f in os.listdir(KITTI_SAMPLE) if f.endswith('.bin')) if (
+      os.path.isdir(KITTI_SAMPLE)) else []
+  if files:
+    out['real KITTI'] = np.stack([kitti.load_scan(os.path.join(KITTI_SAMPLE, f),
+                                                  params.sensor)[0] for f in files])
+  return out
+
+
+def plot(results, path):
+  plt = common.pyplot()
+  specs = sorted({r['corrupt'] for r in results})
+  names = sorted({r['data'] for r in results})
+  fig, axes = plt.subplots(len(names), len(specs), figsize=(3.2 * len(specs), 3 * len(names)),
+                           squeeze=False, layout='constrained')
+  colours = dict(zip(METHODS, plt.cm.tab10.colors))
+  for i, name in enumerate(names):
+    for j, spec in enumerate(specs):
+      ax = axes[i, j]
+      for r in results:
+        if r['data'] == name and r['corrupt'] == spec:
+          ax.scatter(r['seconds_per_scan'], r['mean']['abs_rel'], color=colours[r['method']],
+                     label=r['method'], s=30)
+          ax.scatter(r['seconds_per_scan'], r['mean']['edge_abs_rel'], marker='x',
+                     color=colours[r['method']], s=30)
+      ax.set_xscale('log')
+      ax.set_yscale('log')
+      ax.set_title(f'{name}: {spec}', fontsize=9)
+      ax.set_xlabel('seconds per scan')
+      if j == 0:
+        ax.set_ylabel('AbsRel on removed returns (x: edges)')
+  axes[0, 0].legend(fontsize=7)
+  fig.savefig(path, dpi=100)
+
+
+def kitti_picture(params, depth, methods, path):
+  """One real scan with 3 of 4 beams removed, restored by each method: the
+  range, and the error against the real scan on the removed returns."""
+  from dusty_jax import codec, evaluation, restoration
+  plt = common.pyplot()
+  sensor = params.sensor
+  known = evaluation.corruption_known('beams:4', 1, sensor.shape)[0]
+  target = np.asarray(codec.valid_depth(depth, sensor)) & ~known
+  panels = [('real scan', depth, None), ('input: beams:4', np.where(known, depth, 0.0), None)]
+  for m in methods:
+    out = restoration.restore(params, np.where(known, depth, 0.0), known, method=m)['depth']
+    err = np.abs(out - depth) / np.maximum(depth, 1e-6)
+    panels.append((f'{m}: AbsRel {err[target].mean():.3f} on the removed returns', out,
+                   np.where(target, err, np.nan)))
+  fig, axes = plt.subplots(len(panels), 2, figsize=(13, 1.3 * len(panels)),
+                           layout='constrained', squeeze=False)
+  norm = plt.matplotlib.colors.LogNorm(sensor.min_depth + 1, sensor.max_depth)
+  for (title, image, err), (ax_d, ax_e) in zip(panels, axes):
+    shown = np.where(image > 0, image, np.nan)
+    im_d = ax_d.imshow(shown, cmap='turbo_r', norm=norm, interpolation='nearest', aspect='auto')
+    ax_d.set_title(title, fontsize=8)
+    if err is not None:
+      im_e = ax_e.imshow(err, cmap='magma', vmin=0, vmax=0.3, interpolation='nearest',
+                         aspect='auto')
+      ax_e.set_title('relative error on the removed returns', fontsize=8)
+    for ax in (ax_d, ax_e):
+      ax.set_xticks([])
+      ax.set_yticks([])
+  fig.colorbar(im_d, ax=axes[:, 0], label='range (m); white: no return', shrink=0.5)
+  fig.colorbar(im_e, ax=axes[:, 1], label='|error| / range', shrink=0.5)
+  fig.savefig(path, dpi=90)
+
+
+def main(argv=None):
+  a = parse_args(argv)
+  sys.path.insert(0, os.path.join(HERE, '..'))
+  info = common.print_banner()
+  import dusty_jax
+  from dusty_jax import evaluation
+  params = dusty_jax.load_pretrained(a.model) if a.model in dusty_jax.pretrained.available() \
+      else dusty_jax.load_checkpoint(a.model)[0]
+  methods, specs = a.methods.split(','), a.corruptions.split(',')
+  data = datasets(params, a.split, a.num)
+  results = []
+  print(f'{"data":16} {"corruption":10} {"method":14} {"AbsRel":>7} {"x linear":>8} '
+        f'{"edges":>7} {"x linear":>8} {"MAE m":>6} {"CD x1e4":>7} {"s/scan":>8}')
+  for name, depth in data.items():
+    for spec in specs:
+      rows = {}
+      for m in methods:
+        n = a.inversion_num if m == 'inversion' else len(depth)
+        r = evaluation.fill(params, depth[:n], corruption=spec, method=m)
+        r['data'] = name
+        results.append(r)
+        rows[m] = r
+        # linear on the same scans as this method (inversion takes fewer)
+        ref = rows.get('linear')
+        if ref is not None and n != ref['num']:
+          ref = evaluation.fill(params, depth[:n], corruption=spec, method='linear')
+        ratio = lambda k: (r['mean'][k] / ref['mean'][k] if ref else float('nan'))
+        print(f'{name:16} {spec:10} {m:14} {r["mean"]["abs_rel"]:7.4f} '
+              f'{ratio("abs_rel"):8.2f} {r["mean"]["edge_abs_rel"]:7.4f} '
+              f'{ratio("edge_abs_rel"):8.2f} {r["mean"]["mae"]:6.2f} '
+              f'{1e4 * r["mean"]["cd"]:7.2f} {r["seconds_per_scan"]:8.4f}', flush=True)
+        if ref is not None:
+          r['vs_linear'] = {k: ratio(k) for k in ('abs_rel', 'edge_abs_rel', 'mae', 'cd')}
+          r['linear_on_same_scans'] = ref['mean']
+  os.makedirs(a.out, exist_ok=True)
+  common.write_json(os.path.join(a.out, 'restore.json'),
+                    {'machine': info, 'model': a.model, 'split': a.split,
+                     'results': [{k: v for k, v in r.items() if k != 'per_scan'}
+                                 for r in results]})
+  plot(results, os.path.join(a.out, 'restore.png'))
+  if 'real KITTI' in data:
+    kitti_picture(params, data['real KITTI'][0], [m for m in methods if m != 'inversion']
+                  + ['inversion'] * ('inversion' in methods),
+                  os.path.join(a.out, 'restore_kitti.png'))
+
+
+if __name__ == '__main__':
+  main()

