@@ -70,7 +70,7 @@ def test_another_sensors_sweeps_in_the_folder_are_skipped_and_counted(tmp_path):
     assert re.search(r"not a sweep of sensor 'my16': [\d,]+ of its [\d,]+ returns on the beams "
                      r'and in range fill a pixel \([0-3]\.\d%\), where a sweep of the spec fills '
                      r'one per kept firing \(14\.2%: width 256 of native_width 1800\)', reason)
-  assert "train: 4 scans written, 2 skipped (2 not sweeps of sensor 'my16')" in logs
+  assert "train: 4 scans written, 2 skipped (2 of another sensor than 'my16')" in logs
   # The array holds the four 16-beam sweeps, as each unfolds alone.
   want = [unfolding.unfold(points.read_points(os.path.join(root, n)), MY16).depth
           for n, _, _ in MIXED[:4]]
@@ -129,6 +129,11 @@ def test_training_with_a_spec_other_than_the_datas_is_refused(tmp_path):
         rf'max_depth: data 80\.0, config 120\.0; train with --config\.sensor\.file={mine}$')):
       trainer.train_and_evaluate(_train_config(data, given), str(workdir), log=lambda m: None)
     assert not workdir.exists()
+  # Its own spec at other columns (--config.sensor.width): both flags named.
+  with pytest.raises(DataError, match=(
+      rf'\(x\): width: data 64, config 32; train with --config\.sensor\.file={mine} '
+      r'--config\.sensor\.width=64$')):
+    arrays.check_sensor(data, sensor_lib.with_columns(data_spec, 32), 'x')
   # The data's own spec, under any name, passes.
   renamed = str(tmp_path / 'renamed.json')
   sensor_lib.save(dataclasses.replace(data_spec, name='renamed'), renamed)

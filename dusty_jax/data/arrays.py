@@ -244,10 +244,12 @@ def check_sensor(directory: str, sensor: SensorSpec, named: str):
   path = os.path.join(directory, SENSOR)
   if not os.path.isfile(path):
     return
-  diff = sensor_lib.first_difference(sensor_lib.load(path), sensor, ('data', 'config'))
+  data = sensor_lib.load(path)
+  diff = sensor_lib.first_difference(data, sensor, ('data', 'config'))
   if diff:
+    columns = f' --config.sensor.width={data.width}' if data.width != sensor.width else ''
     raise DataError(f'{path}, the spec the data was prepared with, is not the config\'s '
-                    f'({named}): {diff}; train with --config.sensor.file={path}')
+                    f'({named}): {diff}; train with --config.sensor.file={path}{columns}')
 
 
 def load_angles(directory: str, sensor: SensorSpec) -> np.ndarray:

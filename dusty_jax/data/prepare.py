@@ -296,7 +296,7 @@ def _write(dataset, root, out, reader, listed, sensor, kept, log) -> dict:
     meta['splits'][split] = int(count)
     meta['skipped'][split] = [{'path': p, 'reason': r} for p, r in skipped]
     log(f'{split}: {count} scans written, {len(skipped)} skipped' +
-        (f' ({foreign} not sweeps of sensor {sensor.name!r})' if foreign else ''))
+        (f' ({foreign} of another sensor than {sensor.name!r})' if foreign else ''))
   angles = os.path.join(out, arrays.ANGLES)
   if acc.count.sum():
     arrays.save_array(angles, acc.result())
