@@ -77,6 +77,23 @@ def test_another_sensors_sweeps_in_the_folder_are_skipped_and_counted(tmp_path):
   np.testing.assert_array_equal(np.load(os.path.join(out, 'train.npy')), np.stack(want))
 
 
+def _contents(folder):
+  return {n: open(os.path.join(folder, n), 'rb').read() for n in sorted(os.listdir(folder))}
+
+
+def test_a_rerun_on_only_another_sensors_sweeps_leaves_the_folder_as_it_was(tmp_path):
+  out = str(tmp_path / 'out')
+  prepare.prepare('files', _folder(tmp_path / 'mine', MIXED[:4]), out, MY16,
+                  log=lambda m: None)
+  before = _contents(out)
+  foreign = _folder(tmp_path / 'kitti', MIXED[4:])
+  with pytest.raises(DataError, match=(
+      rf'^{re.escape(foreign)}: every scan file was skipped, nothing prepared; the first of '
+      r"2: .*kitti_000000\.bin: not a sweep of sensor 'my16'")):
+    prepare.prepare('files', foreign, out, MY16, log=lambda m: None)
+  assert _contents(out) == before
+
+
 def test_auto_on_sweeps_of_two_sensors_says_so_and_stops(tmp_path):
   root, out = _folder(tmp_path / 'raw', MIXED), str(tmp_path / 'out')
   line = _refused(['--dataset', 'files', '--root', root, '--out', out, '--sensor', 'auto'],

@@ -13,8 +13,8 @@ a sweep of another sensor (unfolding.NotThisSensor: its returns fill far
 fewer pixels than the spec's sensor would; counted apart).
 Arguments and inputs are checked before anything is created; a split that
 now yields no scan has its old array removed (said so), and a run that finds
-no scan at all fails, naming the first file's reason (an ``out`` it made is
-removed again). Each split is written scan by scan, so memory does not grow
+no scan at all fails, naming the first file's reason, and changes nothing
+(an ``out`` it made is removed again). Each split is written scan by scan, so memory does not grow
 with the number of scans (benchmarks/prepare_memory.py).
 """
 
@@ -273,30 +273,39 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
 
 
 def _write(dataset, root, out, reader, listed, sensor, kept, log) -> dict:
-  """:func:`prepare`'s writing, once its inputs are checked."""
+  """:func:`prepare`'s writing, once its inputs are checked. A run that
+  prepares no scan changes nothing in ``out``: its old arrays, spec and
+  meta.json stay as they were."""
   old = arrays.read_meta(out)
   os.makedirs(out, exist_ok=True)
-  sensor_lib.save(sensor, os.path.join(out, SENSOR_FILE))
   meta = {'dataset': dataset, 'sensor': sensor.name, 'shape': list(sensor.shape),
           'splits': dict(kept),
           'skipped': {s: old.get('skipped', {}).get(s, []) for s in kept}}
   acc = unfolding.AngleAccumulator(sensor)
   first_skip = None
   for split, paths in listed.items():
-    target = arrays.split_path(out, split)
     count, skipped, foreign = convert_split(
-        paths, reader.load_scan, sensor, target,
+        paths, reader.load_scan, sensor, arrays.split_path(out, split),
         angle_acc=acc if split == 'train' else None, desc=split, log=log)
     first_skip = first_skip or (skipped[0] if skipped else None)
-    if not count and os.path.isfile(target):
-      os.remove(target)  # a stale array from an earlier run must not be used
-      log(f'{split}: removed the old {target} (this run found no scan for it)')
     if not paths:
       log(f'{split}: no files found, split not written')
     meta['splits'][split] = int(count)
     meta['skipped'][split] = [{'path': p, 'reason': r} for p, r in skipped]
     log(f'{split}: {count} scans written, {len(skipped)} skipped' +
         (f' ({foreign} of another sensor than {sensor.name!r})' if foreign else ''))
+  if not sum(meta['splits'][s] for s in listed):
+    files = sum(len(p) for p in listed.values())
+    path, reason = first_skip
+    reason = reason if reason.startswith(path) else f'{path}: {reason}'
+    raise DataError(f'{root}: every scan file was skipped, nothing prepared; the first '
+                    f'of {files}: {reason}')
+  sensor_lib.save(sensor, os.path.join(out, SENSOR_FILE))
+  for split in listed:
+    target = arrays.split_path(out, split)
+    if not meta['splits'][split] and os.path.isfile(target):
+      os.remove(target)  # a stale array from an earlier run must not be used
+      log(f'{split}: removed the old {target} (this run found no scan for it)')
   angles = os.path.join(out, arrays.ANGLES)
   if acc.count.sum():
     arrays.save_array(angles, acc.result())
@@ -307,10 +316,4 @@ def _write(dataset, root, out, reader, listed, sensor, kept, log) -> dict:
   meta['identity'] = {split: identity.of_file(arrays.split_path(out, split), whole=True)
                    for split in SPLITS if os.path.isfile(arrays.split_path(out, split))}
   arrays.write_meta(out, meta)
-  if not sum(meta['splits'][s] for s in listed):
-    files = sum(len(p) for p in listed.values())
-    path, reason = first_skip
-    reason = reason if reason.startswith(path) else f'{path}: {reason}'
-    raise DataError(f'{root}: every scan file was skipped, nothing prepared; the first '
-                    f'of {files}: {reason}')
   return meta
