@@ -94,7 +94,7 @@ class SensorSpec:
       if k in kw:
         kw[k] = _number(k, kw[k], source, whole=k.endswith('width'))
     if not isinstance(kw['name'], str):
-      raise DataError(f'{source}: name must be a string, got {json.dumps(kw["name"])}')
+      raise DataError(f'{source}: name must be a string, got {_shown(kw["name"])}')
     try:
       return cls(**kw)
     except ValueError as e:
