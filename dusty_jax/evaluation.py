@@ -256,6 +256,8 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
   if len(names) != len(depth):
     raise ValueError(f'{len(names)} names for {len(depth)} scans')
   per_scan, measurability, complete, observed = [], [], [], []
+  fills = corrupt.removes(corruption) if corruption else False
+  filled_by_inversion = []  # x_tilde (metres), where a corruption removed pixels
   for start, d, clean, target, res in restore_batches(
       params, depth, corruption=corruption, num_steps=num_steps, init=init,
       batch=batch, seed=seed, progress=progress):
@@ -269,6 +271,8 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
       measurability.append(res['measurability'])
       observed.append(d)
       complete.append(reconstruction.completion_errors(res, truth[0][sl], sensor))
+    if fills:
+      filled_by_inversion.append(np.asarray(codec.complete_depth(res['inv_depth'], sensor)))
     if each is not None:
       each(start, clean, target, res)
   columns = [k for k, _, _ in reconstruction.COLUMNS]
@@ -280,6 +284,8 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
             'mean': {k: records.finite_mean([r[k] for r in per_scan]) for k in columns},
             'per_scan': per_scan, 'corrupt': corruption, 'steps': num_steps,
             'init': init if isinstance(init, str) else 'given latents'}
+  if fills and per_scan:
+    record['fill'] = fill_record(params, depth, corruption, seed, filled_by_inversion)
   if truth is not None and per_scan:
     m = np.concatenate(measurability)
     obs = np.concatenate(observed)
@@ -296,6 +302,40 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
       record['ground_truth']['ring_table'] = brief(
           ground_truth.ring_table_scores(sensor, ring_keep, obs, comp, prob))
   return record
+
+
+def fill_record(params: GeneratorParams, depth, corruption: str, seed: int,
+                filled_by_inversion) -> dict:
+  """What :func:`restoration` reports where a corruption removed pixels:
+  x_tilde's scores on the removed returns (metrics.restoration) beside
+  linear interpolation's of the same pixels (:func:`fill`), the baseline
+  every restoration figure shows."""
+  filled = np.concatenate(filled_by_inversion)
+  d = np.nan_to_num(np.asarray(depth[:len(filled)], np.float32), nan=0.0, posinf=0.0,
+                    neginf=0.0)
+  known = corruption_known(corruption, len(d), params.sensor.shape, seed)
+  inverted = fill_metrics.scores(filled, d, known, params.angles, params.sensor)
+  linear = fill(params, d, corruption=corruption, method='linear', seed=seed)
+  return {'scored': 'the removed pixels that had a return (metrics/restoration.py)',
+          'inversion': {k: records.finite_mean(v) for k, v in inverted.items()},
+          'linear': linear['mean'],
+          'linear_seconds_per_scan': linear['seconds_per_scan']}
+
+
+def fill_lines(fill_rec: dict) -> list[str]:
+  """The lines that show a restoration beside linear interpolation."""
+  lines = [f'{"on the removed returns":46} {"AbsRel":>7} {"MAE m":>7} {"edge AbsRel":>11} '
+           f'{"edge MAE":>8} {"CD x1e4":>8}']
+  for name in ('inversion', 'linear'):
+    m = fill_rec[name]
+    num = lambda k, scale=1: f'{scale * m[k]:.4f}' if m[k] is not None else 'n/a'
+    label = 'GAN inversion (x_tilde)' if name == 'inversion' else 'linear interpolation'
+    lines.append(f'  {label:44} {num("abs_rel"):>7} {num("mae"):>7} {num("edge_abs_rel"):>11} '
+                 f'{num("edge_mae"):>8} {num("cd", 1e4):>8}')
+  inv, lin = fill_rec['inversion']['abs_rel'], fill_rec['linear']['abs_rel']
+  if inv is not None and lin:
+    lines.append(f'  inversion / linear AbsRel: x{inv / lin:.2f}')
+  return lines
 
 
 # What ``restoration`` reports of drop placement (ground_truth.measurability_scores).

@@ -15,8 +15,8 @@ cylinder), rows do not.
     rows is a column, so this is linear interpolation along each column.
   * :func:`morphological`: IP-Basic (Ku et al., 2018, "In Defense of
     Classical Image Processing") on a range image: dilations that prefer
-    the nearer surface, a hole-closing, larger dilations for what is left,
-    then median and Gaussian smoothing of what was filled.
+    the nearer surface, larger ones for what is left, then median and
+    Gaussian smoothing.
 
 numpy and scipy on the host: these are the fast baselines (milliseconds),
 not programs to compile.
@@ -132,24 +132,21 @@ def _filter(image, fn, size):
   return fn(wide, size=size, mode='nearest')[:, pad:-pad]
 
 
-def morphological(depth, known, min_depth, max_depth, gap: int | None = None):
-  """IP-Basic's fill on a range image. ``gap``: the largest run of missing
-  rows between known ones (default: measured from ``known``); the kernels
-  are that tall, so that the first dilation closes the gaps between kept
-  beams as IP-Basic's 5 x 5 diamond closes a projected scan's."""
+def morphological(depth, known, min_depth, max_depth):
+  """IP-Basic's fill on a range image: a 5 x 5 dilation that keeps the
+  nearer surface (its kernel size; on inverse depth, where nearer is larger,
+  as IP-Basic inverts depth), larger dilations for the holes left, then a
+  5 x 5 median and a Gaussian blur (sigma 1 pixel) of the result. Of its
+  variants tried on 32 simulated validation scans (a 9 x 5 or 7 x 3 first
+  kernel, IP-Basic's hole closing, no blur), this one filled beams:4 and
+  drop:0.9 best: AbsRel 0.063 and 0.075; linear interpolation 0.019 and
+  0.044 (benchmarks/research/restoration)."""
   h, w = depth.shape
   r, c, v = _support(depth, known, min_depth, max_depth)
-  if gap is None:
-    rows = np.flatnonzero(known.any(axis=1))
-    gap = int(np.diff(rows).max()) if len(rows) > 1 else 1
-  k = 2 * max(gap, 2) + 1
-  # Nearer is larger (IP-Basic inverts depth so that dilation keeps the
-  # foreground): inverse depth already is.
   inv = np.zeros((h, w))
   inv[r, c] = v
-  out = _filter(inv, ndimage.grey_dilation, (k, 5))
-  out = _filter(out, ndimage.grey_closing, (5, 5))
-  for size in ((k + 2, 7), (2 * k + 1, 15), (h, 31)):
+  out = _filter(inv, ndimage.grey_dilation, (5, 5))
+  for size in ((7, 7), (15, 15), (h, 31)):
     empty = out <= 0
     if not empty.any():
       break

@@ -26,7 +26,9 @@ from __future__ import annotations
 import numpy as np
 
 from dusty_jax import codec, errors, interpolation
+from dusty_jax.data import unfolding
 from dusty_jax.generator import GeneratorParams
+from dusty_jax.sensor import SensorSpec
 
 CLASSICAL = tuple(interpolation.FILLS)
 METHODS = CLASSICAL + ('inversion', 'auto')
@@ -138,3 +140,42 @@ def _inversion(params, depth, known, returns, key, num_steps):
   scan = np.where(known, np.where(returns, depth, 0.0), np.asarray(res['depth']))
   return {'filled': filled, 'measurability': np.asarray(res['measurability']),
           'scan': scan.astype(np.float32)}
+
+
+def on_grid(depth, source: SensorSpec, target: SensorSpec):
+  """A scan of a sparser sensor placed on another sensor's grid, to restore
+  there: (depth, known) of ``target``'s shape.
+
+  ``depth`` (Hs, W) or (N, Hs, W) is a scan unfolded with ``source`` (its
+  rows ``source``'s beams, its width ``target``'s). Each source beam goes to
+  the target row nearest in elevation, where one lies within half the
+  target's beam spacing there (beams outside the target's field of view are
+  left out); those rows are known (returns and drops), every other row
+  unknown. Two beams on one row: the first (the upper) is kept.
+  """
+  depth = np.asarray(depth, np.float32)
+  if depth.shape[-2:] != (source.height, target.width):
+    raise errors.InputError(
+        f'scan of shape {depth.shape}: expected ({source.height}, {target.width}), '
+        f"{source.name!r}'s beams at {target.name!r}'s width (unfold its sweep with "
+        f'sensor.with_width({target.width}))')
+  el_s, el_t = source.elevation, target.elevation
+  nearest_row = np.abs(el_s[:, None] - el_t[None, :]).argmin(1)
+  spacing = np.abs(np.gradient(el_t)) if target.height > 1 else np.array([np.inf])
+  inside = np.abs(el_s - el_t[nearest_row]) <= spacing[nearest_row] / 2
+  out = np.zeros(depth.shape[:-2] + target.shape, np.float32)
+  known = np.zeros(out.shape, bool)
+  for i in np.flatnonzero(inside)[::-1]:  # the upper beam written last, so kept
+    out[..., nearest_row[i], :] = depth[..., i, :]
+    known[..., nearest_row[i], :] = True
+  if not inside.any():
+    raise errors.InputError(f'no beam of {source.name!r} lies within {target.name!r}\'s '
+                            'field of view: nothing to place on its grid')
+  return out, known
+
+
+def points_on_grid(points, source: SensorSpec, target: SensorSpec, ring=None):
+  """:func:`on_grid` of a sweep's points (data.read_points' output, or (N,
+  >=3) x, y, z) of the ``source`` sensor, unfolded at ``target``'s width."""
+  scan = unfolding.to_range_image(points, source.with_width(target.width), ring=ring)
+  return on_grid(scan, source, target)

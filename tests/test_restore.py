@@ -1,6 +1,8 @@
 """restore(): the classical fills on hand-made scans, the scores, and the
 contract of every input."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
@@ -184,3 +186,55 @@ def test_restore_names_the_methods(params):
 
 def test_restore_is_public():
   assert dusty_jax.restore is restoration.restore
+
+
+def test_on_grid_places_each_beam_on_the_row_nearest_in_elevation():
+  target = dusty_jax.get_sensor('kitti')
+  source = dusty_jax.get_sensor('vlp16').with_width(target.width)
+  scan = np.arange(16, dtype=np.float32)[:, None] + np.ones((16, target.width), np.float32)
+  depth, known = restoration.on_grid(scan, source, target)
+  rows = np.flatnonzero(known.any(axis=1))
+  assert known[rows].all() and depth.shape == target.shape
+  # The VLP-16's beams at +1 .. -15 degrees lie in the HDL-64E's +2 .. -24.9.
+  in_view = [i for i, e in enumerate(source.elevation_deg) if -15.5 < e < 1.5]
+  assert len(rows) == len(in_view) == 8 + 1
+  for i in in_view:
+    j = np.abs(np.asarray(target.elevation_deg) - source.elevation_deg[i]).argmin()
+    np.testing.assert_array_equal(depth[j], scan[i])
+  with pytest.raises(errors.InputError, match=r"at 'kitti''s width"):
+    restoration.on_grid(scan[:, :100], source, target)
+
+
+def test_restore_cli_scores_each_method_beside_linear(tmp_path, capsys, params):
+  from dusty_jax.tools import restore as restore_tool
+  depth = np.stack([simulated_lidar.render_scan(s, params.sensor).depth for s in (1, 2)])
+  np.save(tmp_path / 'scans.npy', depth)
+  out = tmp_path / 'out'
+  restore_tool.main(['--workdir', 'sim-dusty1', '--input', str(tmp_path / 'scans.npy'),
+                     '--corrupt', 'beams:4', '--methods', 'nearest', '--out', str(out)])
+  m = json.load(open(out / 'metrics.json'))
+  assert set(m['mean']) == {'nearest', 'linear'} and m['num'] == 2
+  known = evaluation.corruption_known('beams:4', 2, params.sensor.shape)
+  for i, name in enumerate(('scans_00000', 'scans_00001')):
+    filled = np.load(out / f'{name}_nearest_depth.npy')
+    direct = restoration.restore(params, np.where(known[i], depth[i], 0.0), known[i],
+                                 method='nearest')['depth']
+    np.testing.assert_array_equal(filled, direct)
+    assert (out / f'{name}.png').is_file() and (out / f'{name}_linear.ply').is_file()
+  want = fill_metrics.scores(np.stack([np.load(out / f'scans_0000{i}_linear_depth.npy')
+                                       for i in range(2)]), depth, known, params.angles,
+                             params.sensor)
+  assert m['mean']['linear']['abs_rel'] == pytest.approx(float(np.mean(want['abs_rel'])))
+  assert 'x linear' in capsys.readouterr().out
+
+
+def test_the_invert_tool_shows_linear_beside_inversion(params):
+  depth = np.stack([simulated_lidar.render_scan(s, params.sensor).depth for s in (3, 4)])
+  rec = evaluation.restoration(params, depth, corruption='drop:0.9', num_steps=2)
+  fill = rec['fill']
+  lin = evaluation.fill(params, depth, corruption='drop:0.9', method='linear')
+  assert fill['linear'] == lin['mean']
+  assert fill['inversion']['abs_rel'] > 0 and fill['inversion']['edge_abs_rel'] > 0
+  lines = evaluation.fill_lines(fill)
+  assert 'linear interpolation' in lines[2] and 'inversion / linear AbsRel' in lines[3]
+  assert 'fill' not in evaluation.restoration(params, depth[:1], num_steps=1)

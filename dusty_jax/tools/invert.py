@@ -153,6 +153,8 @@ def run(a):
   label = f'{params.model}' + (f' ({a.corrupt})' if a.corrupt else '')
   print(f'protocol {a.protocol}: {rec["num"]} scans')
   print(records.format_table({label: rec['mean']}, reconstruction.COLUMNS))
+  if 'fill' in rec:  # a corruption removed pixels: beside linear interpolation
+    print('\n'.join(evaluation.fill_lines(rec['fill'])))
   if rec.get('ground_truth'):
     report_ground_truth(rec['ground_truth'], a.out)
 
