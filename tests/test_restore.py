@@ -103,6 +103,9 @@ def test_scores_against_a_known_error():
   s = fill_metrics.scores(off, clean, known, angles, sensor)
   np.testing.assert_allclose(s['abs_rel'][0], 0.1, rtol=1e-5)
   np.testing.assert_allclose(s['edge_abs_rel'][0], 0.1, rtol=1e-5)
+  half = np.where(known, clean, off)  # kept pixels exact: Table III's pixels halve it
+  np.testing.assert_allclose(fill_metrics.scores(half, clean, known, angles, sensor)
+                             ['scan_abs_rel'][0], 0.05, rtol=1e-5)
   want_mae = 0.1 * (10 + 40) / 2
   np.testing.assert_allclose(s['mae'][0], want_mae, rtol=1e-4)
   edges = fill_metrics.edges(clean[0], sensor)
