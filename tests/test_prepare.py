@@ -59,8 +59,9 @@ def test_prepare_cli_and_errors(kitti, tmp_path, capsys):
   _kitti_tree(root, kitti, seqs=(('00', 1),))
   prepare_tool.main(['--dataset', 'kitti', '--root', root, '--out', out])
   assert 'train: 1 scans written' in capsys.readouterr().out
-  with pytest.raises(SystemExit, match=r'--dataset=nuscenes: value should be one of <files\|kitti\|mpo>'):
-    prepare_tool.main(['--dataset', 'nuscenes', '--root', root, '--out', out])
+  with pytest.raises(SystemExit, match=(r'--dataset=nuscene: value should be one of '
+                                       r'<files\|kitti\|kitti360\|mpo\|nuscenes>')):
+    prepare_tool.main(['--dataset', 'nuscene', '--root', root, '--out', out])
   with pytest.raises(SystemExit, match='no such directory'):
     prepare_tool.main(['--dataset', 'kitti', '--root', str(tmp_path / 'nope'),
                        '--out', out])

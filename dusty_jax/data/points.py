@@ -110,7 +110,7 @@ def read_points(path: str, *, metadata: str | None = None,
     raise DataError(f'{path}: metadata and frame are for an Ouster .pcap only')
   else:
     fields = READERS[suffix](path)
-  return _checked(fields, path)
+  return check_fields(fields, path)
 
 
 def ring_field(fields: dict[str, np.ndarray], source: str = 'points') -> np.ndarray | None:
@@ -134,8 +134,9 @@ def ring_field(fields: dict[str, np.ndarray], source: str = 'points') -> np.ndar
   return None
 
 
-def _checked(fields: dict[str, np.ndarray], path: str) -> dict[str, np.ndarray]:
-  """Fields as equal-length 1-D arrays with x, y, z; DataError otherwise."""
+def check_fields(fields: dict[str, np.ndarray], path: str) -> dict[str, np.ndarray]:
+  """Fields as equal-length 1-D arrays with x, y, z (as floats); DataError
+  naming ``path`` otherwise. Every reader's output passes here."""
   missing = [k for k in ('x', 'y', 'z') if k not in fields]
   if missing:
     raise DataError(f'{path}: no {", ".join(missing)} field; fields: '
@@ -337,7 +338,7 @@ def write_points(path: str, fields: dict[str, np.ndarray], *, encoding: str | No
   if encoding not in encodings:
     raise ValueError(f'{path}: encoding {encoding!r} for {suffix}; known: {encodings}')
   fields = {k: np.asarray(v) for k, v in fields.items()}
-  _checked(dict(fields), path)
+  check_fields(dict(fields), path)
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
   WRITERS[suffix](path, fields, encoding)
 

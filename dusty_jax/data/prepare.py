@@ -1,7 +1,10 @@
-"""Turns a KITTI or MPO folder, or a folder of point files of any spinning
-LiDAR (``files``: every format data/points.py reads), into prepared arrays
-(see data/arrays.py), with the sensor spec they were unfolded with beside
-them (``sensor.json``; estimated from the sweeps with ``sensor='auto'``).
+"""Turns a dataset folder (KITTI, MPO, KITTI-360, nuScenes: kitti.py,
+mpo.py, kitti360.py, nuscenes.py), or a folder of point files and
+recordings of any spinning LiDAR (``files``: every format data/points.py
+reads, and ROS bags, data/recordings.py: each sweep a scan), into prepared
+arrays (see data/arrays.py), with the sensor spec they were unfolded with
+beside them (``sensor.json``; estimated from the sweeps with
+``sensor='auto'``).
 
 The command line is ``python -m dusty_jax.tools.prepare``.
 
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import collections
 import fnmatch
+import itertools
 import os
 import shutil
 import sys
@@ -31,7 +35,8 @@ import numpy as np
 import tqdm
 
 from dusty_jax import codec, sensor as sensor_lib
-from dusty_jax.data import arrays, estimate, identity, kitti, mpo, points, unfolding
+from dusty_jax.data import (arrays, estimate, identity, kitti, kitti360, mpo, nuscenes, points,
+                            recordings, unfolding)
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec, get_sensor
 
@@ -47,12 +52,16 @@ REPORT_DROPPED = 0.1
 
 class Files:
   """A folder of point files (one sweep each, any format points.read_points
-  reads) as a dataset: split by the lists ``ROOT/{train,val,test}.txt``
-  (paths relative to ROOT, one per line) where they exist, else by a seeded
-  shuffle (FILE_SPLIT) of the files matching ``pattern`` under ROOT."""
+  reads) and recordings (every sweep of their PointCloud2 ``topic``, or
+  every ``every``-th; recordings.py) as a dataset: split by file, by the
+  lists ``ROOT/{train,val,test}.txt`` (paths relative to ROOT, one per
+  line) where they exist, else by a seeded shuffle (FILE_SPLIT) of the files
+  matching ``pattern`` under ROOT (the sweeps of one recording stay in one
+  split)."""
 
-  def __init__(self, pattern: str = '*', seed: int = 0):
-    self.pattern, self.seed = pattern, seed
+  def __init__(self, pattern: str = '*', seed: int = 0, topic: str | None = None,
+               every: int = 1):
+    self.pattern, self.seed, self.topic, self.every = pattern, seed, topic, every
 
   def _all(self, root: str) -> list[str]:
     found = []
@@ -60,8 +69,9 @@ class Files:
       for n in names:
         path = os.path.join(d, n)
         rel = os.path.relpath(path, root)
-        if (points.format_of(path) and (fnmatch.fnmatch(n, self.pattern) or
-                                        fnmatch.fnmatch(rel, self.pattern))):
+        if ((points.format_of(path) or recordings.format_of(path)) and
+            (fnmatch.fnmatch(n, self.pattern) or
+             fnmatch.fnmatch(rel, self.pattern))):
           found.append(path)
     return sorted(found)
 
@@ -73,14 +83,15 @@ class Files:
               'file for the splits asked')
     ends = collections.Counter()
     for _, _, names in os.walk(root):
-      ends.update(points.format_of(n) or os.path.splitext(n)[1] or '(no extension)'
-                  for n in names)
+      ends.update(points.format_of(n) or recordings.format_of(n) or
+                  os.path.splitext(n)[1] or '(no extension)' for n in names)
     held = (', '.join(f'{n} {e}' for e, n in ends.most_common(6)) +
             (', ...' if len(ends) > 6 else '')) if ends else 'no file at all'
     which = (f'match --pattern {self.pattern!r}' if self.pattern != '*' else
-             'are point files')
+             'are point files or recordings')
     return (f'{root}: no files under it {which} (it holds {held}; point files end in '
-            f'{", ".join(sorted(points.READERS))})')
+            f'{", ".join(sorted(points.READERS))}, recordings in '
+            f'{", ".join(recordings.RECORDING_FORMATS)})')
 
   def list_split(self, root: str, split: str) -> list[str]:
     lists = {s: os.path.join(root, f'{s}.txt') for s in SPLITS}
@@ -101,18 +112,64 @@ class Files:
     i = SPLITS.index(split)
     return sorted(files[j] for j in order[bounds[i]:bounds[i + 1]])
 
+  def count(self, path: str) -> int:
+    """Scans of a file: its sweeps to keep for a recording, else 1. A
+    recording that cannot be opened counts 1, the one failure reading it
+    gives (:meth:`scans`)."""
+    try:
+      return recordings.count_sweeps(path, self.topic, self.every)
+    except DataError:
+      return 1
+
+  def _sweeps(self, path: str, every: int):
+    """A recording's recordings.Sweep, every ``every``-th; one that cannot
+    be read on gives one more Sweep holding why."""
+    try:
+      yield from recordings.read_sweeps(path, self.topic, every)
+    except DataError as e:
+      yield recordings.Sweep(path, None, _error=str(e))
+
+  def scans(self, paths):
+    """The scans of ``paths`` one after another, for :meth:`load_scan`: a
+    point file's path, or each kept recordings.Sweep of a recording."""
+    for path in paths:
+      if recordings.format_of(path):
+        yield from self._sweeps(path, self.every)
+      else:
+        yield path
+
+  def sample(self, paths, n: int):
+    """Up to ``n`` scans spread over ``paths`` and over the sweeps of each
+    recording (for the estimate), as :meth:`scans` gives them."""
+    chosen = paths[:: max(1, len(paths) // n)][:n]
+    per_file = -(-n // max(1, len(chosen)))
+    for path in chosen:
+      if recordings.format_of(path):
+        stride = max(1, self.count(path) * self.every // per_file)
+        yield from itertools.islice(self._sweeps(path, stride), per_file)
+      else:
+        yield path
+
   @staticmethod
-  def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
-    """(H, W) depth[, (H, W, 3) xyz], :class:`unfolding.Unfolded` of a file."""
-    fields = points.read_points(path)
-    u = unfolding.unfold(fields, sensor, ring=points.ring_field(fields, path),
-                         source=path)
+  def load_scan(scan, sensor: SensorSpec, return_xyz: bool = False):
+    """(H, W) depth[, (H, W, 3) xyz], :class:`unfolding.Unfolded` of a point
+    file's path or a recordings.Sweep."""
+    if isinstance(scan, recordings.Sweep):
+      source, fields = scan.source, scan.fields
+    else:
+      source, fields = scan, points.read_points(scan)
+    u = unfolding.unfold(fields, sensor, ring=points.ring_field(fields, source),
+                         source=source)
     if u.off_elevation + u.out_of_range > REPORT_DROPPED * u.points:
-      warnings.warn(f'{path}: {u.summary()}', stacklevel=2)
+      warnings.warn(f'{source}: {u.summary()}', stacklevel=2)
     return (u.depth, u.xyz, u) if return_xyz else (u.depth, u)
 
 
-READERS = {'kitti': kitti, 'mpo': mpo, 'files': Files()}
+READERS = {'kitti': kitti, 'mpo': mpo, 'kitti360': kitti360, 'nuscenes': nuscenes,
+           'files': Files()}
+# The sensor preset a dataset is prepared with unless another is given.
+DATASET_SENSOR = {'kitti': 'kitti', 'mpo': 'mpo', 'kitti360': kitti360.SENSOR,
+                  'nuscenes': nuscenes.SENSOR}
 MIN_VALID_FRACTION = 0.05  # a real scan returns on most of its pixels
 MIN_RING_FRACTION = 0.25
 # A scan on few of the spec's rows, those rows this full, is a sweep of a
@@ -139,24 +196,28 @@ def junk_reason(depth, sensor: SensorSpec) -> str | None:
 
 
 def convert_split(paths, load, sensor: SensorSpec, target: str, angle_acc=None,
-                  desc='scans', log=print):
+                  desc='scans', log=print, total: int | None = None):
   """Converts files into the (N, H, W) depth array ``target``, scan by scan
   (memory does not grow with N).
 
-  ``skipped`` lists (path, reason) for every file that failed; ``foreign``
+  ``paths``: the scans, each a file's path or a recordings.Sweep, that
+  ``load`` unfolds; an iterator of ``total`` of them (default len(paths)).
+  ``skipped`` lists (path, reason) for every scan that failed; ``foreign``
   how many of them are not sweeps of ``sensor`` (unfolding.NotThisSensor).
   With no scan, nothing is written (an old ``target`` is left for the caller
   to remove). Returns (N, skipped, foreign).
   """
+  total = len(paths) if total is None else total
   skipped, foreign = [], 0
-  writer = arrays.SplitWriter(target, len(paths), sensor.shape)
+  writer = arrays.SplitWriter(target, total, sensor.shape)
   try:
-    for path in tqdm.tqdm(paths, desc=desc, unit='scan', file=sys.stderr,
-                          disable=len(paths) < 2):
+    for scan in tqdm.tqdm(paths, desc=desc, unit='scan', file=sys.stderr, total=total,
+                          disable=total < 2):
+      path = getattr(scan, 'source', scan)
       try:
         with warnings.catch_warnings(record=True) as caught:
           warnings.simplefilter('always')
-          depth, xyz, *_ = load(path, sensor, return_xyz=True)
+          depth, xyz, *_ = load(scan, sensor, return_xyz=True)
         for w in caught:
           log(f'warning: {w.message}')
       except (ValueError, OSError) as e:
@@ -197,24 +258,30 @@ def _kept_splits(out: str, splits, sensor: SensorSpec) -> dict:
   return kept
 
 
-def estimate_sensor(paths, out: str, log=print) -> SensorSpec:
+def estimate_sensor(paths, out: str, log=print, reader=None) -> SensorSpec:
   """``prepare --sensor auto``: a spec estimated from up to ESTIMATE_SWEEPS
-  of ``paths``, printed with its fit and written to ``out/sensor.json``. A
-  file that cannot be read is skipped with one line, as the conversion
+  of ``paths`` (of a :class:`Files` ``reader``: of their sweeps, spread over
+  each recording), printed with its fit and written to ``out/sensor.json``.
+  A scan that cannot be read is skipped with one line, as the conversion
   skips it."""
   if not paths:
     raise DataError('--sensor auto: no training files to estimate the sensor from')
-  chosen = paths[:: max(1, len(paths) // ESTIMATE_SWEEPS)][:ESTIMATE_SWEEPS]
+  reader = reader or Files()
   sweeps, read = [], []
-  for p in chosen:
+  for scan in reader.sample(paths, ESTIMATE_SWEEPS):
     try:
-      sweeps.append(points.read_points(p))
-      read.append(p)
+      if isinstance(scan, recordings.Sweep):
+        name, fields = scan.source, scan.fields
+      else:
+        name, fields = scan, points.read_points(scan)
     except (ValueError, OSError) as e:
       log(f'skipped: {e}')
+      continue
+    sweeps.append(fields)
+    read.append(name)
   if not sweeps:
-    raise DataError(f'--sensor auto: none of the {len(chosen)} training files chosen to '
-                    'estimate the sensor from could be read (see the reasons above)')
+    raise DataError('--sensor auto: none of the training sweeps chosen to estimate the '
+                    'sensor from could be read (see the reasons above)')
   fit = estimate.estimate(sweeps, sources=read,
                           name=os.path.basename(os.path.normpath(out)) or 'estimated')
   log(fit.summary())
@@ -224,13 +291,16 @@ def estimate_sensor(paths, out: str, log=print) -> SensorSpec:
 
 
 def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None = None,
-            splits=SPLITS, log=print, pattern: str = '*', split_seed: int = 0) -> dict:
+            splits=SPLITS, log=print, pattern: str = '*', split_seed: int = 0,
+            topic: str | None = None, every: int = 1) -> dict:
   """Prepares every split of ``dataset`` under ``root`` into ``out``.
 
   ``sensor``: a SensorSpec, a preset's name or a spec file's path, or
   'auto' (estimated from the training files); default the dataset's own
-  preset (kitti, mpo). ``pattern``, ``split_seed``: which files of a
-  ``files`` dataset, and how they split (:class:`Files`).
+  preset (DATASET_SENSOR). ``pattern``, ``split_seed``: which files of a
+  ``files`` dataset, and how they split; ``topic``, ``every``: which
+  PointCloud2 topic of its recordings, and every how many sweeps are kept
+  (:class:`Files`).
 
   Every input is checked before anything is created. ``meta.json`` then
   describes every split array in ``out``: the ones written now, and those
@@ -244,9 +314,13 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
   unknown = [s for s in splits if s not in SPLITS]
   if unknown or not splits:
     raise ValueError(f'unknown splits {unknown}; known: {list(SPLITS)}')
+  recordings.check_every(every)
+  if dataset != 'files' and (topic is not None or every != 1):
+    raise ValueError(f'topic and every are for recordings (dataset files), not {dataset}')
   if not os.path.isdir(root):
     raise FileNotFoundError(f'{root}: no such directory')
-  reader = Files(pattern, split_seed) if dataset == 'files' else READERS[dataset]
+  reader = (Files(pattern, split_seed, topic, every) if dataset == 'files' else
+            READERS[dataset])
   if dataset == 'files' and not sensor:
     raise DataError('a folder of point files needs --sensor: a preset '
                     f'({", ".join(sorted(sensor_lib.PRESETS))}), a sensor spec '
@@ -257,11 +331,14 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
       raise FileNotFoundError(reader.nothing_found(root))
     raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '
                             f'{list(splits)} (is this the dataset root?)')
+  first = next((p for ps in listed.values() for p in ps if recordings.format_of(p)), None)
+  if first:
+    recordings.require(first)  # the [ros] extra, checked before anything is written
   if isinstance(sensor, str):
     sensor = (estimate_sensor(listed.get('train') or reader.list_split(root, 'train'),
-                              out, log)
+                              out, log, reader if isinstance(reader, Files) else None)
               if sensor == 'auto' else get_sensor(sensor))
-  sensor = sensor or get_sensor(dataset)
+  sensor = sensor or get_sensor(DATASET_SENSOR[dataset])
   kept = _kept_splits(out, splits, sensor)
   made = not os.path.exists(out)
   try:
@@ -284,9 +361,12 @@ def _write(dataset, root, out, reader, listed, sensor, kept, log) -> dict:
   acc = unfolding.AngleAccumulator(sensor)
   first_skip = None
   for split, paths in listed.items():
+    scans, total = paths, len(paths)
+    if isinstance(reader, Files):  # a recording is many scans
+      scans, total = reader.scans(paths), sum(reader.count(p) for p in paths)
     count, skipped, foreign = convert_split(
-        paths, reader.load_scan, sensor, arrays.split_path(out, split),
-        angle_acc=acc if split == 'train' else None, desc=split, log=log)
+        scans, reader.load_scan, sensor, arrays.split_path(out, split),
+        angle_acc=acc if split == 'train' else None, desc=split, log=log, total=total)
     first_skip = first_skip or (skipped[0] if skipped else None)
     if not paths:
       log(f'{split}: no files found, split not written')

@@ -1,7 +1,7 @@
 """Command-line tools: thin, they parse flags, call the library, print.
 
     python -m dusty_jax.tools.synthesize   simulate a dataset (data/synthetic.py)
-    python -m dusty_jax.tools.prepare      KITTI / MPO folders -> prepared arrays
+    python -m dusty_jax.tools.prepare      datasets, point files, ROS bags -> prepared arrays
     python -m dusty_jax.tools.evaluate     Table II synthesis metrics of a run
     python -m dusty_jax.tools.invert       GAN inversion: reconstruct, restore, Table III
     python -m dusty_jax.tools.convert      an authors' .pth -> a run directory

@@ -3,9 +3,14 @@
     python -m dusty_jax.tools.prepare --dataset kitti --root /data/kitti --out data/kitti
     python -m dusty_jax.tools.prepare --dataset files --root /data/mine --pattern '*.pcd' \
         --sensor vlp16 --out data/mine        # or --sensor my_lidar.json, or --sensor auto
+    python -m dusty_jax.tools.prepare --dataset files --root /data/bags --sensor vlp16 \
+        --topic /velodyne_points --every 5 --out data/bags
 
-``files``: a folder of point files of any spinning LiDAR (KITTI .bin,
-nuScenes .pcd.bin, PCD, PLY, .npy, Ouster .pcap), split by
+``kitti360``, ``nuscenes``: the peers' splits at 64 x 1024 and 32 x 1024
+(data/kitti360.py, data/nuscenes.py). ``files``: a folder of point files of
+any spinning LiDAR (KITTI .bin, nuScenes .pcd.bin, PCD, PLY, .npy, Ouster
+.pcap) and recordings (ROS1 .bag, ROS2 .db3 and .mcap: every sweep of their
+PointCloud2 topic a scan; pip install 'dusty_jax[ros]'), split by file, by
 ROOT/{train,val,test}.txt where they exist, else 80/10/10 by --split_seed.
 The sensor spec used is written to OUT/sensor.json; train with
 ``--config.data.dir=OUT --config.sensor.file=OUT/sensor.json``.
@@ -33,10 +38,15 @@ def main(argv=None):
   flags.DEFINE_list('splits', list(prepare.SPLITS), 'splits to prepare', flag_values=f)
   flags.DEFINE_string('sensor', '', 'a sensor preset, a sensor spec JSON file, or auto '
                       '(estimated from the training files); default the dataset\'s own '
-                      '(kitti, mpo; files needs one)', flag_values=f)
+                      f'({", ".join(f"{k}: {v}" for k, v in prepare.DATASET_SENSOR.items())}; '
+                      'files needs one)', flag_values=f)
   flags.DEFINE_string('pattern', '*', 'files: which file names (a glob)', flag_values=f)
   flags.DEFINE_integer('split_seed', 0, 'files: the seed of the 80/10/10 split',
                        flag_values=f)
+  flags.DEFINE_string('topic', None, 'files: the PointCloud2 topic of the recordings '
+                      '(default the only one)', flag_values=f)
+  flags.DEFINE_integer('every', 1, 'files: keep every N-th sweep of a recording (5 makes '
+                       'a 10 Hz recording 2 scans a second)', lower_bound=1, flag_values=f)
   flags.register_validator(
       'sensor', lambda v: v in ('', 'auto') or v in PRESETS or os.path.isfile(v),
       f'a sensor preset ({", ".join(sorted(PRESETS))}), an existing sensor spec file, or auto',
@@ -47,7 +57,7 @@ def main(argv=None):
   tools.parse(f, argv, __doc__)
   meta = tools.run(lambda: prepare.prepare(
       f.dataset, f.root, f.out, f.sensor or None, tuple(f.splits),
-      pattern=f.pattern, split_seed=f.split_seed))
+      pattern=f.pattern, split_seed=f.split_seed, topic=f.topic, every=f.every))
   skipped = sum(len(v) for v in meta['skipped'].values())
   print(f'done: {meta["splits"]} -> {f.out}; {skipped} files skipped')
 
