@@ -33,7 +33,7 @@ PERIOD = 100_000_000  # 10 Hz
 def cloud_message(fields, stamp_ns, store, *, big_endian=False, height=1, pad=0):
   """A PointCloud2 of ``fields`` in ``store``'s types; ``pad`` bytes after each
   row (row_step > width * point_step), ``height`` rows."""
-  n = len(fields['x'])
+  n = len(next(iter(fields.values())))
   dtype = np.dtype([(k, v.dtype.newbyteorder('>' if big_endian else '<'))
                     for k, v in fields.items()])
   data = np.empty(n, dtype)
@@ -195,15 +195,18 @@ def test_a_bad_message_is_one_line_and_the_rest_still_read(tmp_path):
   bad.data = bad.data[:-4]  # a truncated cloud
   unknown = cloud_message(good[2], STAMP, ROS1)
   unknown.fields[0].datatype = 9
+  no_xyz = cloud_message({'range': np.ones(4, np.float32)}, STAMP, ROS1)
   with Writer1(path) as writer:
     connection = writer.add_connection('/points', CLOUD, typestore=ROS1)
-    for i, message in enumerate([cloud_message(good[0], STAMP, ROS1), bad, unknown,
+    for i, message in enumerate([cloud_message(good[0], STAMP, ROS1), bad, unknown, no_xyz,
                                  cloud_message(good[2], STAMP, ROS1)]):
       writer.write(connection, i + 1, ROS1.serialize_ros1(message, CLOUD))
   got = list(read_sweeps(str(path)))
-  assert len(got) == 4
+  assert len(got) == 5
   assert_same_fields(got[0].fields, good[0])
-  assert_same_fields(got[3].fields, good[2])
+  assert_same_fields(got[4].fields, good[2])
+  with pytest.raises(DataError, match=rf'^{path}:/points#3: no x, y, z field; fields: range$'):
+    got[3].fields
   with pytest.raises(DataError, match=rf'^{path}:/points#1: bad PointCloud2 layout \(.*'
                      r'10 x 1 points of \d+ bytes, \d+ bytes of data\)$'):
     got[1].fields

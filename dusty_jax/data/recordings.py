@@ -43,7 +43,7 @@ POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'  # rosbags' name of the type in ROS1
 INSTALL = "pip install 'dusty_jax[ros]'"
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Sweep:
   """One sweep of a recording: ``source`` names it (``FILE`` for a point
   file, ``FILE:TOPIC#INDEX`` for a message, INDEX counting the topic's
