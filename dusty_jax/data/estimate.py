@@ -1,15 +1,26 @@
 """A sensor spec estimated from recorded sweeps (``prepare --sensor auto``).
 
 Each beam's elevation model ``sin(elevation) = a + b / range`` (the spec's
-``elevation_deg`` = asin(a) and ``vertical_offset_m`` = b) is fitted by least
-squares to its points. The points of a beam come from the sweeps' ring field
-where they have one; else from the structure of the elevations: the points'
-sin(elevation), corrected by one offset common to all beams (the one that
-makes the elevations' histogram sharpest), fall into one cluster per beam,
-and the fitted lines then reassign every point to its nearest beam. The
-columns come from the azimuth spacing of consecutive returns of one beam.
-What the points cannot say (the sensor's mount height, its exact range
-limits) is a default or a bound of what was seen, printed for review.
+``elevation_deg`` = asin(a) and ``vertical_offset_m`` = b) is fitted to its
+returns beyond FIT_MIN_RANGE (nearer ones are drivers' placeholders for no
+return, a few centimetres out, or returns where a beam-origin offset bends
+the model most) by least squares that drop outliers (beyond TRIM_SIGMAS
+robust deviations) and refit. Where a beam's ranges leave its offset free
+(a beam that sees only flat ground, all at one range) its offset follows
+the sensor's geometry, fitted to the beams whose ranges pin theirs: beam
+origins displaced by ``v`` vertically and ``rho`` towards each beam give
+``b = v cos^2(el) - rho sin(el) cos(el)`` (rho = Ouster's
+lidar_origin_to_beam_origin_mm).
+
+The points of a beam come from the sweeps' ring field where they have one;
+else from the structure of the elevations: the points' sin(elevation),
+corrected by the geometry above (the ``v`` and ``rho`` that make the
+elevations' histogram sharpest), fall into one cluster per beam, and the
+fitted lines then reassign every point to its nearest beam (lines that meet
+become one beam). The columns come from the azimuth spacing of consecutive
+returns of one beam. What the points cannot say (the sensor's mount height,
+its exact range limits) is a default or a bound of what was seen, printed
+for review.
 """
 
 from __future__ import annotations
@@ -22,12 +33,38 @@ from dusty_jax.data import points as points_lib
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
 
+# Returns nearer than this (metres) are not fitted: placeholders of beams
+# without a return (nuScenes writes them a few centimetres out, an Ouster
+# driver at its beam origins, 15-27 mm out), and the range where a beam
+# origin's offset bends the elevation model by more than 0.03 degrees
+# (Ouster's OS0, 27.7 mm: second order in offset / range).
+FIT_MIN_RANGE = 0.5
 # Points nearer than this (metres) do not vote for a beam's cluster: there a
-# beam-origin offset moves the elevation most.
+# beam-origin offset moves the elevation most. Clusters are found twice:
+# from all the points fitted, and from those beyond it; the better fit is kept.
 CLUSTER_MIN_RANGE = 3.0
 CLUSTER_BIN_DEG = 0.01     # histogram bins of the elevation structure
-OFFSET_GRID_M = np.linspace(-0.1, 0.1, 201)  # the common offsets tried
+# The beam-origin geometry tried for the sharpest elevations: a vertical
+# offset v (common to all beams near the horizon) and a radial one rho, on a
+# coarse grid of both, then each on its fine grid; from at most
+# GEOMETRY_POINTS points (an even stride through them).
+OFFSET_GRID_M = np.linspace(-0.1, 0.1, 201)
+RADIAL_GRID_M = np.linspace(-0.05, 0.05, 201)
+COARSE_STRIDE = 10
+GEOMETRY_POINTS = 200_000
 OFFSET_MATTERS_M = 0.002   # fitted offsets all below this are left out
+# The robust fit drops points farther from the line than this many robust
+# standard deviations (1.4826 median absolute deviations), or than
+# RESIDUAL_FLOOR where the points lie on the line (a driver's exact angles).
+TRIM_SIGMAS = 4.0
+RESIDUAL_FLOOR = np.sin(np.deg2rad(0.002))
+# A beam's offset is fitted where its ranges pin its elevation to this
+# (standard error of a, in sin(elevation)); else it follows the geometry.
+PINNED = np.sin(np.deg2rad(0.01))
+MIN_FIT_POINTS = 8         # fewer returns: the beam's median, offset from the geometry
+# Two fitted beams closer than this (degrees) at every range are one beam
+# that the clusters split.
+SAME_BEAM_DEG = 0.5 * CLUSTER_BIN_DEG
 WIDTHS = (2048, 1024, 512, 256)  # image widths an estimate proposes
 # More clusters of elevations than any spinning LiDAR has beams: the points
 # have no beam structure (noise, or not a LiDAR's sweep).
@@ -52,6 +89,9 @@ class Estimate:
   rms_deg: np.ndarray  # per-beam RMS of the fit, degrees (NaN if inferred)
   agreement: float  # share of points whose nearest fitted beam is their own
   firings: int  # measured firings per revolution
+  near: int = 0  # returns nearer than FIT_MIN_RANGE, not fitted
+  rings_left_out: list = dataclasses.field(default_factory=list)  # ring ids
+  offsets_from_geometry: int = 0  # beams whose offset follows the geometry
 
   def summary(self) -> str:
     s = self.spec
@@ -65,33 +105,96 @@ class Estimate:
         'points lie nearest to their own beam',
         '  vertical offsets: ' + (
             f'{min(s.vertical_offset_m):+.4f} to {max(s.vertical_offset_m):+.4f} m'
-            if s.vertical_offset_m else 'none needed'),
+            if s.vertical_offset_m else 'none needed') + (
+            f' ({self.offsets_from_geometry} beams\' from the beams\' geometry: their '
+            'ranges leave it free)' if s.vertical_offset_m and self.offsets_from_geometry
+            else ''),
     ]
+    if self.near:
+      lines.append(f'  {self.near} returns nearer than {FIT_MIN_RANGE} m not fitted '
+                   '(placeholders of beams without a return, or too near to tell)')
     if self.beams_inferred:
       lines.append(f'  rows {self.beams_inferred} had no return: their '
                    'elevations are interpolated from their ring ids, not measured')
+    if self.rings_left_out:
+      lines.append(f'  rings {self.rings_left_out} left out: no return beyond '
+                   f'{FIT_MIN_RANGE} m, and their ids are not in elevation order to '
+                   'interpolate them')
     lines.append(f'  not measured, review: mount_height {s.mount_height} m, range '
                  f'({s.min_depth}, {s.max_depth}) m')
     return '\n'.join(lines)
 
 
+def _geometry(a, v, rho):
+  """``b`` of beams at sin(elevation) ``a`` whose origins sit ``v`` above
+  and ``rho`` out from the sensor's origin (module docstring)."""
+  c = np.sqrt(np.clip(1 - a * a, 0, 1))
+  return v * c * c - rho * a * c
+
+
+def _robust_line(y, x):
+  """(a, b, standard error of a) of ``y = a + b x`` by least
+  squares that drops points beyond TRIM_SIGMAS robust deviations; b = 0
+  where x barely varies."""
+  use = np.ones(len(y), bool)
+  for _ in range(4):
+    xs, ys = x[use], y[use]
+    xm = xs.mean()
+    sxx = np.sum((xs - xm) ** 2)
+    if sxx > 1e-12 * len(xs):
+      b = np.sum((xs - xm) * (ys - ys.mean())) / sxx
+      a = ys.mean() - b * xm
+    else:
+      a, b = np.median(ys), 0.0
+    res = y - a - b * x
+    scale = 1.4826 * np.median(np.abs(res[use] - np.median(res[use])))
+    keep = np.abs(res) <= max(TRIM_SIGMAS * scale, RESIDUAL_FLOOR)
+    if keep.sum() < MIN_FIT_POINTS or np.array_equal(keep, use):
+      break
+    use = keep
+  n = use.sum()
+  s = np.sqrt(np.sum(res[use] ** 2) / max(n - 2, 1))
+  se = s * np.sqrt(1 / n + xm ** 2 / sxx) if sxx > 1e-12 * n else np.inf
+  return a, b, se
+
+
 def _fit_lines(sin_el, inv_r, beam, n):
-  """Least-squares (a, b, rms of sin) per beam id 0..n-1."""
+  """(a, b, rms of sin, offsets from the geometry) per beam id 0..n-1:
+  robust lines where a beam's ranges pin its elevation (PINNED), else the
+  beam's offset from the geometry fitted to those (:func:`_geometry`) and
+  its median; a NaN where a beam has no point."""
   a, b, rms = np.full(n, np.nan), np.zeros(n), np.full(n, np.nan)
+  pinned, weight = np.zeros(n, bool), np.zeros(n)
   order = np.argsort(beam, kind='stable')
   bounds = np.searchsorted(beam[order], np.arange(n + 1))
-  for j in range(n):
-    idx = order[bounds[j]:bounds[j + 1]]
-    if not len(idx):
+  groups = [order[bounds[j]:bounds[j + 1]] for j in range(n)]
+  for j, idx in enumerate(groups):
+    if len(idx) >= MIN_FIT_POINTS:
+      a[j], b[j], se = _robust_line(sin_el[idx], inv_r[idx])
+      pinned[j] = se <= PINNED
+      weight[j] = 1 / max(se, 1e-9) ** 2
+  # The geometry of the pinned beams (weighted by their precision).
+  v = rho = 0.0
+  if pinned.sum() >= 2:
+    aj = a[pinned]
+    c = np.sqrt(np.clip(1 - aj * aj, 0, 1))
+    design = np.stack([c * c, -aj * c], 1) * np.sqrt(weight[pinned])[:, None]
+    (v, rho), *_ = np.linalg.lstsq(design, b[pinned] * np.sqrt(weight[pinned]), rcond=None)
+  free = 0
+  for j, idx in enumerate(groups):
+    if not len(idx) or pinned[j]:
       continue
     y, x = sin_el[idx], inv_r[idx]
-    if len(idx) >= 8 and np.ptp(x) > 1e-3:
-      design = np.stack([np.ones_like(x), x], 1)
-      (a[j], b[j]), *_ = np.linalg.lstsq(design, y, rcond=None)
-    else:
-      a[j] = np.median(y)
-    rms[j] = np.sqrt(np.mean((y - a[j] - b[j] * x) ** 2))
-  return a, b, rms
+    a[j] = np.median(y)
+    for _ in range(3):  # b depends on the elevation it offsets
+      b[j] = _geometry(a[j], v, rho)
+      a[j] = np.median(y - b[j] * x)
+    free += 1
+  for j, idx in enumerate(groups):
+    if len(idx):
+      res = sin_el[idx] - a[j] - b[j] * inv_r[idx]
+      rms[j] = np.sqrt(np.mean(res ** 2))
+  return a, b, rms, free
 
 
 def _nearest(sin_el, inv_r, a, b, beams):
@@ -106,22 +209,36 @@ def _nearest(sin_el, inv_r, a, b, beams):
 
 
 def _clusters(sin_el, inv_r, mode, source='the sweeps'):
-  """Beam ids (top first) of points by the structure of their elevations;
-  DataError naming ``source`` where they have none (MAX_BEAMS_FOUND)."""
-  far = np.ones_like(inv_r, bool) if mode == 'all' else inv_r < 1.0 / CLUSTER_MIN_RANGE
+  """Beam ids (top first) of points by the structure of their elevations,
+  and their count; DataError naming ``source`` where they have none
+  (MAX_BEAMS_FOUND)."""
+  far = np.ones_like(inv_r, bool) if mode == 'all' else inv_r <= 1.0 / CLUSTER_MIN_RANGE
   if far.sum() < 100:  # (a sweep of a room: every point near)
     far = np.ones_like(inv_r, bool)
   y, x = sin_el[far], inv_r[far]
-  lo, hi = y.min(), y.max()
-  bins = max(int((hi - lo) / np.sin(np.deg2rad(CLUSTER_BIN_DEG))) + 1, 1)
+  lo = y.min()
+  width = np.sin(np.deg2rad(CLUSTER_BIN_DEG))
+  bins = max(int((y.max() - lo) / width) + 1, 1)
+  stride = max(1, len(y) // GEOMETRY_POINTS)
+  ys = (y[::stride] - lo) / width
+  # _geometry(y, v, rho) * x = v * vx - rho * rx, in bins.
+  vx, rx = _geometry(y[::stride], 1, 0) * x[::stride] / width, \
+      -_geometry(y[::stride], 0, 1) * x[::stride] / width
 
-  def sharpness(c):
-    h, _ = np.histogram(y - c * x, bins=bins)
+  def sharpness(v, rho):  # (points moved beyond the elevations seen: not counted)
+    k = np.floor(ys - v * vx + rho * rx).astype(np.int64)
+    h = np.bincount(k[(k >= 0) & (k < bins)], minlength=bins)
     return np.sum(h.astype(np.float64) ** 2)
 
-  common = max(OFFSET_GRID_M, key=sharpness)
-  corrected = sin_el - common * inv_r
-  hist, edges = np.histogram(corrected[far], bins=bins)
+  # The sharpest geometry: both offsets on a coarse grid, then rho (beams'
+  # origins out from the axis), v (common near the horizon) and rho again
+  # on their fine grids.
+  v, rho = max(((v, rho) for v in OFFSET_GRID_M[::COARSE_STRIDE]
+                for rho in RADIAL_GRID_M[::COARSE_STRIDE]), key=lambda t: sharpness(*t))
+  rho = max(RADIAL_GRID_M, key=lambda t: sharpness(v, t))
+  v = max(OFFSET_GRID_M, key=lambda t: sharpness(t, rho))
+  rho = max(RADIAL_GRID_M, key=lambda t: sharpness(v, t))
+  hist, edges = np.histogram(y - _geometry(y, v, rho) * x, bins=bins)
   occupied = hist >= max(2, 1e-4 * far.sum())
   # A beam is a run of occupied bins; runs split at an empty bin.
   starts = np.flatnonzero(occupied & ~np.r_[False, occupied[:-1]])
@@ -133,12 +250,46 @@ def _clusters(sin_el, inv_r, mode, source='the sweeps'):
         f'({lo_deg:.1f} to {hi_deg:.1f} degrees, 1st-99th percentile) fall into '
         f'{len(starts):,} clusters, more than the {MAX_BEAMS_FOUND} beams any spinning '
         'LiDAR has; not a LiDAR sweep? Give its sensor spec instead (--sensor PATH)')
+  if not len(starts):
+    raise DataError(f'{source}: no beam structure found: no elevation holds '
+                    f'{max(2, 1e-4 * far.sum()):.0f} returns within {CLUSTER_BIN_DEG} '
+                    'degrees; give its sensor spec instead (--sensor PATH)')
   centres = np.array([np.average(0.5 * (edges[s:e + 1] + edges[s + 1:e + 2]),
                                  weights=hist[s:e + 1]) for s, e in zip(starts, ends)])
   centres = np.sort(centres)[::-1]  # top first
-  beam = _nearest(corrected, np.zeros_like(corrected), centres, np.zeros_like(centres),
-                  np.arange(len(centres)))
-  return beam, len(centres), common
+  b = _geometry(centres, v, rho)
+  beam = _nearest(sin_el, inv_r, centres, b, np.arange(len(centres)))
+  return beam, len(centres)
+
+
+def _one_line_per_beam(sin_el, inv_r, beam, n):
+  """Beam ids 0..m-1 (top first) and m after the fitted lines reassign
+  every point to its nearest: beams left without a point go, and neighbours
+  whose elevations (or lines, over the ranges seen) lie within
+  SAME_BEAM_DEG of each other become one."""
+  x_lo, x_hi = inv_r.min(), inv_r.max()
+  for _ in range(6):
+    a, b, _, _ = _fit_lines(sin_el, inv_r, beam, n)
+    live = np.flatnonzero(np.isfinite(a))
+    live = live[np.argsort(-a[live], kind='stable')]
+    # Neighbours in elevation whose lines stay within SAME_BEAM_DEG.
+    tol = np.sin(np.deg2rad(SAME_BEAM_DEG))
+    gap = np.minimum(np.abs(np.diff(a[live])), np.maximum(
+        np.abs(np.diff(a[live]) + np.diff(b[live]) * x_lo),
+        np.abs(np.diff(a[live]) + np.diff(b[live]) * x_hi)))
+    merged = np.r_[0, np.cumsum(gap > tol)]  # a new beam at each wide gap
+    new_id = np.empty(n, np.int64)
+    new_id[live] = merged
+    before = beam
+    beam = new_id[_nearest(sin_el, inv_r, a, b, live)]
+    # Ids of the beams left with points, in elevation order.
+    present = np.bincount(beam, minlength=int(merged[-1]) + 1) > 0
+    beam = (np.cumsum(present) - 1)[beam]
+    stable = present.sum() == n and np.array_equal(beam, before)
+    n = int(present.sum())
+    if stable:
+      break
+  return beam, n
 
 
 def _beam_count(p, ring, source) -> int:
@@ -146,9 +297,10 @@ def _beam_count(p, ring, source) -> int:
   if ring is not None:
     return len(np.unique(ring))
   rng = np.linalg.norm(p, axis=1)
-  keep = np.isfinite(rng) & (rng > 0)
+  keep = np.isfinite(rng) & (rng >= FIT_MIN_RANGE)
   if keep.sum() < 100:
-    raise DataError(f'{source}: only {int(keep.sum())} returns; a sweep has thousands')
+    raise DataError(f'{source}: only {int(keep.sum())} returns beyond {FIT_MIN_RANGE} m; a '
+                    'sweep has thousands')
   return _clusters(p[keep, 2] / rng[keep], 1.0 / rng[keep], 'far', source)[1]
 
 
@@ -245,21 +397,29 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
     _check_one_sensor(xyz, rings, sources)
   use_ring = all(r is not None for r in rings)
   rng = [np.linalg.norm(p, axis=1) for p in xyz]
-  keep = [np.isfinite(r) & (r > 0) for r in rng]
+  returned = [np.isfinite(r) & (r > 0) for r in rng]
+  keep = [k & (r >= FIT_MIN_RANGE) for r, k in zip(rng, returned)]
+  near = int(sum(k.sum() for k in returned) - sum(k.sum() for k in keep))
   p = np.concatenate([a[k] for a, k in zip(xyz, keep)])
   r = np.concatenate([a[k] for a, k in zip(rng, keep)])
+  named = _named(sources)
   if len(p) < 100:
-    raise DataError(f'estimate: only {len(p)} returns; a sweep has thousands')
+    raise DataError(f'{named}: only {len(p)} returns beyond {FIT_MIN_RANGE} m to estimate '
+                    f'a sensor from ({near} nearer: placeholders of beams without a '
+                    'return?); a sweep has thousands')
   sin_el, inv_r = p[:, 2] / r, 1.0 / r
   azimuth = np.arctan2(p[:, 1], p[:, 0])
+  left_out = []
   if use_ring:
     ids = np.concatenate([a[k] for a, k in zip(rings, keep)]).astype(np.int64)
+    seen = np.unique(np.concatenate([a[k] for a, k in zip(rings, returned)]))
     uniq, beam = np.unique(ids, return_inverse=True)
-    a, b, rms = _fit_lines(sin_el, inv_r, beam, len(uniq))
-    # Ring ids 0..max with some never seen: a ring without a return still
-    # is a beam; its elevation follows its neighbours' in id order where
-    # elevation is monotone in the id (it is for Velodyne and Hesai drivers).
-    full = np.arange(uniq.max() + 1) if uniq.min() >= 0 else uniq
+    a, b, rms, free = _fit_lines(sin_el, inv_r, beam, len(uniq))
+    # Ring ids 0..max with some never seen (or seen only nearer than
+    # FIT_MIN_RANGE): a ring without a return still is a beam; its elevation
+    # follows its neighbours' in id order where elevation is monotone in
+    # the id (it is for Velodyne, Hesai and Ouster drivers, not nuScenes').
+    full = np.arange(max(uniq.max(), seen.max()) + 1) if seen.min() >= 0 else seen
     missing = np.setdiff1d(full, uniq)
     if len(missing) and len(uniq) >= 2 and (
         np.all(np.diff(a) > 0) or np.all(np.diff(a) < 0)):
@@ -277,18 +437,17 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
       uniq = np.concatenate([uniq, missing])
     else:
       inferred_ids = set()
+      left_out = sorted(set(seen.tolist()) - set(uniq.tolist()))
   else:
     best = None
     for mode in ('all', 'far'):  # all points vote, or only the far ones
-      beam, n, _ = _clusters(sin_el, inv_r, mode, _named(sources))
-      for _ in range(3):  # fit lines, reassign each point to its nearest
-        a, b, rms = _fit_lines(sin_el, inv_r, beam, n)
-        beam = _nearest(sin_el, inv_r, a, b, np.flatnonzero(np.isfinite(a)))
-      a, b, rms = _fit_lines(sin_el, inv_r, beam, n)
+      beam, n = _clusters(sin_el, inv_r, mode, named)
+      beam, n = _one_line_per_beam(sin_el, inv_r, beam, n)
+      a, b, rms, free = _fit_lines(sin_el, inv_r, beam, n)
       score = np.sqrt(np.mean(np.nan_to_num(rms) ** 2))
       if best is None or score < best[0]:
-        best = (score, beam, n, a, b, rms)
-    _, beam, n, a, b, rms = best
+        best = (score, beam, n, a, b, rms, free)
+    _, beam, n, a, b, rms, free = best
     uniq = np.arange(n)
     inferred_ids = set()
   top_first = np.argsort(-a, kind='stable')
@@ -305,13 +464,17 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
     width = next((w for w in WIDTHS if w <= firings), max(16, firings // 16 * 16))
   offsets = b if np.max(np.abs(b)) >= OFFSET_MATTERS_M else ()
   elevation = np.rad2deg(np.arcsin(np.clip(a, -1, 1)))
-  spec = SensorSpec(
-      name, tuple(round(float(e), 5) for e in elevation), width=int(width),
-      native_width=max(firings, int(width)),
-      min_depth=float(max(0.05, np.floor(0.9 * r.min() * 100) / 100)),
-      max_depth=float(max(120.0, np.ceil(1.05 * r.max()))),
-      mount_height=float(mount_height),
-      vertical_offset_m=tuple(round(float(v), 6) for v in offsets))
+  try:
+    spec = SensorSpec(
+        name, tuple(round(float(e), 5) for e in elevation), width=int(width),
+        native_width=max(firings, int(width)),
+        min_depth=float(max(0.05, np.floor(0.9 * r.min() * 100) / 100)),
+        max_depth=float(max(120.0, np.ceil(1.05 * r.max()))),
+        mount_height=float(mount_height),
+        vertical_offset_m=tuple(round(float(v), 6) for v in offsets))
+  except ValueError as e:  # (what the checks above should have refused)
+    raise DataError(f'{named}: could not fit a sensor spec: {e}') from None
   return Estimate(spec, points=len(p), beams_measured=len(a) - len(inferred),
                   beams_inferred=inferred, rms_deg=np.rad2deg(rms),
-                  agreement=float(np.mean(nearest == own)), firings=firings)
+                  agreement=float(np.mean(nearest == own)), firings=firings, near=near,
+                  rings_left_out=left_out, offsets_from_geometry=int(free))

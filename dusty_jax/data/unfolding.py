@@ -297,6 +297,13 @@ def _spacing_margins(sensor: SensorSpec) -> tuple[float, float]:
   return 0.5 * sp[0], 0.5 * sp[-1]
 
 
+# Passes of nearest_beam's search with the offsets of the beams it found:
+# a beam's offset changes little from one beam to the next, so the search
+# settles in a pass or two even where the offsets move a near point past
+# several beams (an Ouster OS0's at half a metre: 2 beams of 128).
+NEAREST_PASSES = 3
+
+
 def nearest_beam(sin_el: np.ndarray, rng: np.ndarray, sensor: SensorSpec):
   """(row, inside) of each point: the beam whose elevation model
   ``sin(elevation) + b / range`` is nearest to the point's sin(elevation);
@@ -305,7 +312,9 @@ def nearest_beam(sin_el: np.ndarray, rng: np.ndarray, sensor: SensorSpec):
   b = sensor.vertical_offset[::-1]
   mid = 0.5 * (s[1:] + s[:-1])
   j = np.searchsorted(mid, sin_el)  # nearest ignoring the offsets
-  if sensor.vertical_offset_m:  # then the neighbours, with them
+  if sensor.vertical_offset_m:  # then with them (near points move by
+    for _ in range(NEAREST_PASSES):  # several beams), and the neighbours
+      j = np.searchsorted(mid, sin_el - b[j] / rng)
     best = j
     cost = np.abs(sin_el - s[j] - b[j] / rng)
     for d in (-1, 1):
@@ -322,12 +331,17 @@ def nearest_beam(sin_el: np.ndarray, rng: np.ndarray, sensor: SensorSpec):
   return row, inside
 
 
-def rows_from_ring_field(ring: np.ndarray, elevation: np.ndarray,
+def rows_from_ring_field(ring: np.ndarray, elevation: np.ndarray, in_range: np.ndarray,
                          sensor: SensorSpec, source: str):
-  """({ring id: row}, row per point, -1 off the beams) from a ring field:
-  rings ordered by their median measured elevation, never by their ids,
-  and matched to rows monotonically (:func:`_assign_rows`), so a ring with
-  no return leaves its row empty."""
+  """({ring id: row}, row per point, whether its ring has an in-range
+  return per point) from a ring field: rings ordered by the
+  median elevation of their in-range returns, never by their ids, and
+  matched to rows monotonically (:func:`_assign_rows`), so a ring with no
+  return leaves its row empty. Only in-range returns decide: a driver's
+  placeholders for beams without a return (nuScenes writes them a few
+  centimetres out, and its upper rings see mostly sky) would otherwise set
+  the median of a ring. Row -1: a ring off the beams, or one with no
+  in-range return (its points are all out of range, placed nowhere)."""
   if ring.min() >= 0 and ring.max() < 2 ** 16:  # a counting sort: linear time
     present = np.bincount(ring) > 0
     ids = np.flatnonzero(present)
@@ -335,23 +349,29 @@ def rows_from_ring_field(ring: np.ndarray, elevation: np.ndarray,
     inverse = index[ring].astype(np.uint16)
   else:
     ids, inverse = np.unique(ring, return_inverse=True)
-  if len(ids) > sensor.height:
-    raise DataError(f'{source}: {len(ids)} distinct ring ids, but sensor '
-                    f'{sensor.name!r} has {sensor.height} beams; is this the '
-                    'right sensor spec?')
-  order = np.argsort(inverse, kind='stable')
-  bounds = np.searchsorted(inverse[order], np.arange(len(ids) + 1))
-  med = np.array([np.median(elevation[order[bounds[i]:bounds[i + 1]]])
-                  for i in range(len(ids))])
+  kept = inverse[in_range]
+  order = np.argsort(kept, kind='stable')
+  bounds = np.searchsorted(kept[order], np.arange(len(ids) + 1))
+  elevation = elevation[in_range]
+  returned = np.diff(bounds) > 0
+  if returned.sum() > sensor.height:
+    raise DataError(f'{source}: {int(returned.sum())} distinct ring ids, but sensor '
+                    f'{sensor.name!r} has {sensor.height} beams (counting the rings with a '
+                    'return in its range); is this the right sensor spec?')
+  med = np.full(len(ids), np.nan)
+  for i in np.flatnonzero(returned):
+    med[i] = np.median(elevation[order[bounds[i]:bounds[i + 1]]])
   top, bottom = _spacing_margins(sensor)
-  on = ((med <= sensor.elevation[0] + 2 * RING_MARGIN_SPACINGS * top) &
-        (med >= sensor.elevation[-1] - 2 * RING_MARGIN_SPACINGS * bottom))
+  on = returned & (
+      (med <= sensor.elevation[0] + 2 * RING_MARGIN_SPACINGS * top) &
+      (med >= sensor.elevation[-1] - 2 * RING_MARGIN_SPACINGS * bottom))
   row_of = np.full(len(ids), -1, np.int64)
   idx = np.flatnonzero(on)
   if len(idx):
     by_el = idx[np.argsort(-med[idx], kind='stable')]
     row_of[by_el] = _assign_rows(med[by_el], sensor)
-  return ({int(i): int(r) for i, r in zip(ids, row_of)}, row_of[inverse])
+  return ({int(i): int(r) for i, r in zip(ids, row_of)}, row_of[inverse],
+          returned[inverse])
 
 
 def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unfolded:
@@ -363,8 +383,9 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
       given as ``ring``).
     sensor: the spec that decides rows, columns and range.
     ring: optional (N,) beam ids in the driver's own order (any order: top
-      first, bottom first or interleaved): rows come from each ring's median
-      elevation. Without it each point goes to the nearest beam's elevation
+      first, bottom first or interleaved): rows come from the median
+      elevation of each ring's in-range returns (never its placeholders
+      near the origin). Without it each point goes to the nearest beam's elevation
       (with the spec's vertical offsets where it has them).
     source: names the input (a path) in errors.
 
@@ -413,10 +434,10 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
     if not np.isfinite(ring).all() or (ring != np.round(ring)).any():
       raise DataError(f'{source}: the ring field holds values that are not '
                       'integers')
-    ring_rows, row = rows_from_ring_field(ring.astype(np.int64),
-                                          np.arcsin(np.clip(sin_el, -1, 1)),
-                                          sensor, source)
-    inside = row >= 0
+    ring_rows, row, ring_in_range = rows_from_ring_field(
+        ring.astype(np.int64), np.arcsin(np.clip(sin_el, -1, 1)), in_range, sensor, source)
+    # A ring without an in-range return is counted out of range, not off the beams.
+    inside = (row >= 0) | ~ring_in_range
     row = np.maximum(row, 0)
   else:
     row, inside = nearest_beam(sin_el, rng, sensor)
