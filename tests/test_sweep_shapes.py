@@ -157,6 +157,23 @@ def test_nuscenes_estimate_ignores_placeholders(ring_field):
   assert np.mean(row[use] == rows[use]) >= ROWS_RIGHT
 
 
+def test_a_nuscenes_ring_of_placeholders_only_is_left_out_and_said():
+  spec, xyz, ring, rows = nuscenes_like(seed=2)
+  r = np.linalg.norm(xyz, axis=1)
+  keep = (rows != 0) | (r < 0.1)  # the top beam saw only sky
+  xyz, ring, rows = xyz[keep], ring[keep], rows[keep]
+  fit = estimate.estimate([xyz], ring=[ring], sources=['top.pcd.bin'])
+  # Its ids are not in elevation order: the ring cannot be interpolated.
+  assert fit.spec.height == 31 and fit.rings_left_out == [int(ring[rows == 0][0])]
+  assert f'rings {fit.rings_left_out} left out: no return beyond 0.5 m' in fit.summary()
+  np.testing.assert_allclose(fit.spec.elevation_deg, spec.elevation_deg[1:], atol=WITHIN_DEG)
+  u = unfolding.unfold(xyz, fit.spec, ring=ring)
+  row = np.array([u.ring_rows[int(i)] for i in ring])
+  use = _in_range(xyz, fit.spec)
+  assert u.ring_rows[fit.rings_left_out[0]] == -1
+  assert np.mean(row[use] == rows[use] - 1) >= ROWS_RIGHT
+
+
 # --- Ouster: beam-origin offsets, its tables, dual returns, the sky -------------
 
 @pytest.mark.parametrize('model', sorted(OUSTER))
