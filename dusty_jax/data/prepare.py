@@ -1,10 +1,10 @@
 """Turns a dataset folder (KITTI, MPO, KITTI-360, nuScenes: kitti.py,
 mpo.py, kitti360.py, nuscenes.py), or a folder of point files and
 recordings of any spinning LiDAR (``files``: every format data/points.py
-reads, and ROS bags, data/recordings.py: each sweep a scan), into prepared
-arrays (see data/arrays.py), with the sensor spec they were unfolded with
-beside them (``sensor.json``; estimated from the sweeps with
-``sensor='auto'``).
+reads, and ROS bags and Velodyne captures, data/recordings.py: each sweep a
+scan), into prepared arrays (see data/arrays.py), with the sensor spec they
+were unfolded with beside them (``sensor.json``; estimated from the sweeps
+with ``sensor='auto'``).
 
 The command line is ``python -m dusty_jax.tools.prepare``.
 
@@ -116,16 +116,18 @@ class Files:
     """Scans of a file: its sweeps to keep for a recording, else 1. A
     recording that cannot be opened counts 1, the one failure reading it
     gives (:meth:`scans`)."""
+    topic = None if recordings.format_of(path) == 'velodyne' else self.topic
     try:
-      return recordings.count_sweeps(path, self.topic, self.every)
+      return recordings.count_sweeps(path, topic, self.every)
     except DataError:
       return 1
 
   def _sweeps(self, path: str, every: int):
     """A recording's recordings.Sweep, every ``every``-th; one that cannot
     be read on gives one more Sweep holding why."""
+    topic = None if recordings.format_of(path) == 'velodyne' else self.topic
     try:
-      yield from recordings.read_sweeps(path, self.topic, every)
+      yield from recordings.read_sweeps(path, topic, every)
     except DataError as e:
       yield recordings.Sweep(path, None, _error=str(e))
 
@@ -331,9 +333,13 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
       raise FileNotFoundError(reader.nothing_found(root))
     raise FileNotFoundError(f'{root}: no {dataset} scan files for splits '
                             f'{list(splits)} (is this the dataset root?)')
-  first = next((p for ps in listed.values() for p in ps if recordings.format_of(p)), None)
-  if first:
-    recordings.require(first)  # the [ros] extra, checked before anything is written
+  needs = {}  # a recording of each extra ([ros], [velodyne]), checked before anything is written
+  for path in (p for ps in listed.values() for p in ps):
+    kind = recordings.format_of(path)
+    if kind:
+      needs.setdefault(kind == 'velodyne', path)
+  for path in needs.values():
+    recordings.require(path)
   if isinstance(sensor, str):
     sensor = (estimate_sensor(listed.get('train') or reader.list_split(root, 'train'),
                               out, log, reader if isinstance(reader, Files) else None)

@@ -10,7 +10,8 @@
 (data/kitti360.py, data/nuscenes.py). ``files``: a folder of point files of
 any spinning LiDAR (KITTI .bin, nuScenes .pcd.bin, PCD, PLY, .npy, Ouster
 .pcap) and recordings (ROS1 .bag, ROS2 .db3 and .mcap: every sweep of their
-PointCloud2 topic a scan; pip install 'dusty_jax[ros]'), split by file, by
+PointCloud2 topic a scan, pip install 'dusty_jax[ros]'; Velodyne .pcap:
+every turn a scan, pip install 'dusty_jax[velodyne]'), split by file, by
 ROOT/{train,val,test}.txt where they exist, else 80/10/10 by --split_seed.
 The sensor spec used is written to OUT/sensor.json; train with
 ``--config.data.dir=OUT --config.sensor.file=OUT/sensor.json``.
