@@ -230,7 +230,8 @@ def test_a_pattern_that_matches_nothing_says_what_is_there(tmp_path):
   line = _refused(['--dataset', 'files', '--root', str(root), '--out', out, '--sensor',
                    'vlp16', '--pattern', '*.pcd'], out, 'no files under it')
   assert line == (f"error: {root}: no files under it match --pattern '*.pcd' (it holds 3 .bin, "
-                  '1 .md; point files end in .bin, .npy, .pcap, .pcd, .pcd.bin, .ply)')
+                  '1 .md; point files end in .bin, .npy, .pcap, .pcd, .pcd.bin, .ply, '
+                  'recordings in .bag, .db3, .mcap)')
 
 
 def test_auto_on_a_sweep_of_noise_finds_no_beams_in_little_memory(tmp_path):
