@@ -194,8 +194,9 @@ def _topic(reader, path: str, topic: str | None) -> str:
 
 
 def count_sweeps(path: str, topic: str | None = None, every: int = 1) -> int:
-  """How many sweeps :func:`read_sweeps` yields, from the recording's index
-  (nothing is decoded); 1 for a point file."""
+  """How many sweeps :func:`read_sweeps` yields: from a bag's index (nothing
+  decoded); a Velodyne capture is decoded to count its turns; 1 for a
+  point file."""
   check_every(every)
   kind = format_of(path)
   if not kind:
@@ -221,7 +222,7 @@ def read_sweeps(path: str, topic: str | None = None, every: int = 1):
 
   ``topic``: the PointCloud2 topic of a recording (default its only one);
   ``every``: keep every ``every``-th sweep (0, every, 2 every, ...), to thin
-  a 10 Hz recording (the others are not decoded).
+  a 10 Hz recording (a bag's others are not decoded).
   """
   path = os.fspath(path)
   check_every(every)
