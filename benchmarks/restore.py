@@ -11,7 +11,11 @@ the learned fill and the paper's GAN inversion (300 iterations). Scores the
 removed returns (evaluation.fill: AbsRel, MAE, the same on depth edges,
 Chamfer) and times one scan at a time (median; the call that compiles not
 counted). Writes restore.json and restore.png (AbsRel against seconds per
-scan), and restore_kitti.png (a real scan's beams:4 restored by each).
+scan), restore_kitti.png (a real scan's beams:4 restored by each) and
+restore_vlp16.png (a real VLP-16 sweep upsampled to the HDL-64E grid); with
+--cross_sensor N, N simulated scene pairs upsampled from a VLP-16 to the
+HDL-64E; and linear interpolation scored as the README's other restoration
+figures are (beside_table3).
 """
 
 from __future__ import annotations
@@ -39,6 +43,8 @@ def parse_args(argv=None):
                  help='of those, how many inversion restores (1-2 s each)')
   p.add_argument('--methods', default=','.join(METHODS))
   p.add_argument('--corruptions', default=','.join(CORRUPTIONS))
+  p.add_argument('--cross_sensor', type=int, default=16,
+                 help='simulated scene pairs, VLP-16 upsampled to HDL-64E (0: none)')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
   return p.parse_args(argv)
 
@@ -54,6 +60,38 @@ def datasets(params, split: str, num: int):
   if files:
     out['real KITTI'] = np.stack([kitti.load_scan(os.path.join(KITTI_SAMPLE, f),
                                                   params.sensor)[0] for f in files])
+  return out
+
+
+def cross_sensor(params, methods, num: int, first_seed: int = 50_000) -> list[dict]:
+  """Upsampling a sparser sensor: the same simulated scenes (seeds the
+  training never used) rendered by a VLP-16 and by the model's HDL-64E; the
+  VLP-16's beams placed on the HDL-64E grid (restoration.on_grid: 9 of its
+  16 beams lie in the HDL-64E's field of view) and the other rows restored,
+  scored against the HDL-64E scan on every row the VLP-16 did not give."""
+  import time
+  from dusty_jax import restoration, sensor as sensor_lib
+  from dusty_jax.data import simulated_lidar
+  from dusty_jax.metrics import records, restoration as fill_metrics
+  target = params.sensor
+  source = sensor_lib.get_sensor('vlp16').with_width(target.width)
+  seeds = range(first_seed, first_seed + num)
+  sparse = np.stack([simulated_lidar.render_scan(s, source).depth for s in seeds])
+  dense = np.stack([simulated_lidar.render_scan(s, target).depth for s in seeds])
+  depth, known = restoration.on_grid(sparse, source, target)
+  out = []
+  for m in methods:
+    n = min(num, 8) if m == 'inversion' else num
+    restoration.restore(params, depth[0], known[0], method=m)  # compiles: not timed
+    filled, seconds = [], []
+    for i in range(n):
+      t = time.perf_counter()
+      filled.append(restoration.restore(params, depth[i], known[i], method=m)['depth'])
+      seconds.append(time.perf_counter() - t)
+    sc = fill_metrics.scores(np.stack(filled), dense[:n], known[:n], params.angles, target)
+    out.append({'method': m, 'corrupt': 'vlp16 to hdl64e', 'num': n,
+                'mean': {k: records.finite_mean(v) for k, v in sc.items()},
+                'seconds_per_scan': float(np.median(seconds)), 'data': 'simulated pairs'})
   return out
 
 
@@ -158,6 +196,36 @@ def kitti_picture(params, depth, methods, path):
   fig.savefig(path, dpi=90)
 
 
+def vlp16_picture(params, methods, path):
+  """The real VLP-16 sweep of ../shared/data/sensors-sample placed on the
+  model's HDL-64E grid by elevation and restored by each method."""
+  from dusty_jax import restoration, sensor as sensor_lib
+  from dusty_jax.data import read_points
+  plt = common.pyplot()
+  sample = os.path.join(os.path.dirname(KITTI_SAMPLE), 'sensors-sample', 'vlp16_ring.pcd')
+  if not os.path.isfile(sample):
+    return
+  target = params.sensor
+  source = sensor_lib.get_sensor('vlp16').with_width(target.width)
+  pts = read_points(sample)
+  depth, known = restoration.points_on_grid(pts, source, target, ring=pts['ring'])
+  panels = [('real VLP-16 sweep on the HDL-64E grid (9 of its 16 beams in view)', depth)]
+  for m in methods:
+    out = restoration.restore(params, depth, known, method=m)
+    panels.append((f'restored: {out["method"]}', out['depth']))
+  fig, axes = plt.subplots(len(panels), 1, figsize=(8, 1.35 * len(panels)),
+                           layout='constrained', squeeze=False)
+  norm = plt.matplotlib.colors.LogNorm(target.min_depth + 1, target.max_depth)
+  for (title, image), ax in zip(panels, axes[:, 0]):
+    im = ax.imshow(np.where(image > 0, image, np.nan), cmap='turbo_r', norm=norm,
+                   interpolation='nearest', aspect='auto')
+    ax.set_title(title, fontsize=8)
+    ax.set_xticks([])
+    ax.set_yticks([])
+  fig.colorbar(im, ax=axes[:, 0], label='range (m); white: no return', shrink=0.6)
+  fig.savefig(path, dpi=90)
+
+
 def main(argv=None):
   a = parse_args(argv)
   sys.path.insert(0, os.path.join(HERE, '..'))
@@ -192,6 +260,12 @@ def main(argv=None):
         if ref is not None:
           r['vs_linear'] = {k: ratio(k) for k in ('abs_rel', 'edge_abs_rel', 'mae', 'cd')}
           r['linear_on_same_scans'] = ref['mean']
+  if a.cross_sensor:
+    for r in cross_sensor(params, methods, a.cross_sensor):
+      results.append(r)
+      print(f'{r["data"]:16} {r["corrupt"]:10} {r["method"]:14} {r["mean"]["abs_rel"]:7.4f} '
+            f'{"":8} {r["mean"]["edge_abs_rel"]:7.4f} {"":8} {r["mean"]["mae"]:6.2f} '
+            f'{1e4 * r["mean"]["cd"]:7.2f} {r["seconds_per_scan"]:8.4f}', flush=True)
   table3 = beside_table3()
   os.makedirs(a.out, exist_ok=True)
   common.write_json(os.path.join(a.out, 'restore.json'),
@@ -200,6 +274,8 @@ def main(argv=None):
                                  for r in results],
                      'linear_beside_table3': table3})
   plot(results, os.path.join(a.out, 'restore.png'))
+  vlp16_picture(params, [m for m in methods if m != 'inversion'],
+                os.path.join(a.out, 'restore_vlp16.png'))
   if 'real KITTI' in data:
     kitti_picture(params, data['real KITTI'][0], [m for m in methods if m != 'inversion']
                   + ['inversion'] * ('inversion' in methods),

@@ -118,7 +118,8 @@ def restore(params: GeneratorParams, depth, known=None, *, method: str = 'auto',
     filled = np.stack([fill(d, k, sensor.min_depth, sensor.max_depth)
                        for d, k in zip(depth, known)])
   elif method == 'learned':
-    filled = restorer.fill(learned_for(params), np.where(returns, depth, 0.0), known, sensor)
+    filled = restorer.fill(learned_for(params), np.where(returns, depth, 0.0), known, sensor,
+                           params)
   else:
     out.update(_inversion(params, depth, known, returns, key, num_steps))
     filled = out.pop('filled')

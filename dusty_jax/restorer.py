@@ -62,7 +62,13 @@ def uncode(x, sensor: SensorSpec):
 
 def features(depth, known, sensor: SensorSpec):
   """One scan's (candidates (H, W, K0), inputs (H, W, C)) for the network,
-  numpy; ``depth`` metres, ``known`` bool (H, W). K0 = len(CANDIDATES)."""
+  numpy; ``depth`` metres, ``known`` bool (H, W). K0 = len(CANDIDATES).
+
+  The candidates are in [-1, 1] inverse depth (:func:`code`); the inputs
+  see them as log-ratios to linear's (a relative difference reads the same
+  at 5 m and at 80 m, where inverse depth differs by little), linear's log
+  depth itself, the distances to the returns each way (in MAX_DISTANCE) and
+  the known and returned pixels."""
   lo, hi = sensor.min_depth, sensor.max_depth
   depth = np.where(known, depth, 0.0)
   lin = interpolation.linear(depth, known, lo, hi)
@@ -72,11 +78,11 @@ def features(depth, known, sensor: SensorSpec):
     cands.append(np.where(np.isfinite(v), v, lin))
     dists.append(np.minimum(dist, MAX_DISTANCE) / MAX_DISTANCE)
   cands.append(interpolation.nearest(depth, known, lo, hi))
-  cands = np.stack([code(c, sensor) for c in cands], -1)
+  ratios = [np.clip(np.log(c / lin), -3, 3) for c in cands[1:]]
   returned = known & (depth > lo) & (depth < hi)
-  inputs = np.concatenate([cands, np.stack(dists, -1).astype(np.float32),
-                           np.stack([known, returned], -1).astype(np.float32)], -1)
-  return cands, inputs
+  inputs = np.stack(ratios + [np.log(lin / 10.0) / 2] + dists + [known, returned], -1)
+  return (np.stack([code(c, sensor) for c in cands], -1),
+          inputs.astype(np.float32))
 
 
 class Selector(nn.Module):
@@ -167,14 +173,28 @@ def _loaded(path: str):
   return load(path)
 
 
-def fill(path: str, depth, known, sensor: SensorSpec):
+def prior(params, depth, known, batch: int = 64):
+  """x_tilde (N, H, W, 1) in [-1, 1] of the generator's encoder answer for
+  scans of metres ``depth`` with ``known`` (the unknown pixels as drops)."""
+  from dusty_jax import codec, sampling  # the generator: only for a prior
+  out = []
+  for s in range(0, len(depth), batch):
+    scans = codec.encode(np.where(known[s:s + batch], depth[s:s + batch], 0.0), params.sensor)
+    z = encoder_lib.encode(params, scans)
+    out.append(np.asarray(sampling.generate(params, z, jax.random.key(0))['inv_depth']))
+  return np.concatenate(out)[..., None]
+
+
+def fill(path: str, depth, known, sensor: SensorSpec, params=None):
   """The learned fill of scans (B, H, W) metres with ``known`` (B, H, W),
-  by the restorer at ``path``: metres at every pixel (B, H, W)."""
+  by the restorer at ``path``: metres at every pixel (B, H, W). A restorer
+  with a prior needs the generator ``params`` (with its encoder)."""
   variables, settings, _ = _loaded(path)
+  cands, inputs = (np.stack(v) for v in zip(*(features(d, k, sensor)
+                                              for d, k in zip(depth, known))))
   if settings.prior:
-    raise ValueError(f'{path}: a restorer that needs x_tilde; restoration.restore '
-                     'runs the ones that do not')
-  cands, inputs = zip(*(features(d, k, sensor) for d, k in zip(depth, known)))
-  x = apply(variables, jnp.asarray(np.stack(inputs)), jnp.asarray(np.stack(cands)),
-            settings)
+    encoder_lib.check_has_encoder(params, f'the restorer {path}')
+    xt = prior(params, depth, known)
+    cands, inputs = np.concatenate([cands, xt], -1), np.concatenate([inputs, xt], -1)
+  x = apply(variables, jnp.asarray(inputs), jnp.asarray(cands), settings)
   return np.asarray(uncode(x, sensor), np.float32)

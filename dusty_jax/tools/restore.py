@@ -78,8 +78,8 @@ def _removing(spec: str) -> bool:
 
 def inputs(a, params):
   """(names, depth (N, H, W), known (N, H, W)) on the model's grid."""
-  from dusty_jax import evaluation, restoration, sensor as sensor_lib
-  from dusty_jax.data import scan_files
+  from dusty_jax import evaluation, restoration, sensor as sensor_lib  # as run()
+  from dusty_jax.data import scan_files  # (as above)
   sensor = params.sensor
   if a.source:
     source = (sensor_lib.load(a.source) if a.source.endswith('.json')
@@ -139,8 +139,8 @@ def picture(path, name, given, results, target, sensor):
 def run(a):
   # The library (and JAX) load once the flags are good.
   import trimesh
-  from dusty_jax import codec, restoration
-  from dusty_jax.metrics import records, restoration as fill_metrics
+  from dusty_jax import codec, restoration  # (as above)
+  from dusty_jax.metrics import records, restoration as fill_metrics  # (as above)
 
   if os.path.exists(a.out) and not os.path.isdir(a.out):
     raise ValueError(f'--out={a.out}: a file, not a folder; give a folder for the results')
