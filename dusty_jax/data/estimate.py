@@ -53,6 +53,12 @@ RADIAL_GRID_M = np.linspace(-0.05, 0.05, 201)
 COARSE_STRIDE = 10
 GEOMETRY_POINTS = 200_000
 OFFSET_MATTERS_M = 0.002   # fitted offsets all below this are left out
+# A beam that sees mostly sky returns too few points to fill its bins as
+# the others do; SPIKE_RETURNS of them within SPIKE_BINS bins, alone within
+# SPIKE_CLEAR_BINS bins (0.1 degrees) each side, still are a beam.
+SPIKE_RETURNS = 3
+SPIKE_BINS = 3
+SPIKE_CLEAR_BINS = 10
 # The robust fit drops points farther from the line than this many robust
 # standard deviations (1.4826 median absolute deviations), or than
 # RESIDUAL_FLOOR where the points lie on the line (a driver's exact angles).
@@ -92,6 +98,7 @@ class Estimate:
   near: int = 0  # returns nearer than FIT_MIN_RANGE, not fitted
   rings_left_out: list = dataclasses.field(default_factory=list)  # ring ids
   offsets_from_geometry: int = 0  # beams whose offset follows the geometry
+  beyond: int = 0  # returns beyond the outermost beams found, not fitted
 
   def summary(self) -> str:
     s = self.spec
@@ -113,6 +120,10 @@ class Estimate:
     if self.near:
       lines.append(f'  {self.near} returns nearer than {FIT_MIN_RANGE} m not fitted '
                    '(placeholders of beams without a return, or too near to tell)')
+    if self.beyond:
+      lines.append(f'  {self.beyond} returns beyond the outermost beams found not fitted '
+                   '(beams with too few returns to find, as those that see mostly sky: '
+                   'a ring field would place them)')
     if self.beams_inferred:
       lines.append(f'  rows {self.beams_inferred} had no return: their '
                    'elevations are interpolated from their ring ids, not measured')
@@ -208,10 +219,34 @@ def _nearest(sin_el, inv_r, a, b, beams):
   return out
 
 
+def _runs(mask):
+  """(first, last) index of each run of True in ``mask``."""
+  return (np.flatnonzero(mask & ~np.r_[False, mask[:-1]]),
+          np.flatnonzero(mask & ~np.r_[mask[1:], False]))
+
+
+def _spikes(hist):
+  """Bins of a beam with few returns (one that sees mostly sky): at least
+  SPIKE_RETURNS points within SPIKE_BINS bins, and no other point within
+  SPIKE_CLEAR_BINS bins of them."""
+  starts, ends = _runs(hist > 0)
+  total = np.add.reduceat(hist, starts) if len(starts) else np.zeros(0, hist.dtype)
+  gap_before = np.r_[np.inf, starts[1:] - ends[:-1] - 1]
+  gap_after = np.r_[starts[1:] - ends[:-1] - 1, np.inf]
+  spike = ((total >= SPIKE_RETURNS) & (ends - starts < SPIKE_BINS) &
+           (gap_before >= SPIKE_CLEAR_BINS) & (gap_after >= SPIKE_CLEAR_BINS))
+  out = np.zeros(len(hist), bool)
+  for s, e in zip(starts[spike], ends[spike]):
+    out[s:e + 1] = True
+  return out
+
+
 def _clusters(sin_el, inv_r, mode, source='the sweeps'):
   """Beam ids (top first) of points by the structure of their elevations,
-  and their count; DataError naming ``source`` where they have none
-  (MAX_BEAMS_FOUND)."""
+  their count, and which points lie within half a beam spacing of the
+  outermost beams found (those beyond, returns of beams too sparse to find,
+  would pull the outermost lines); DataError naming ``source`` where the
+  points have no structure (MAX_BEAMS_FOUND)."""
   far = np.ones_like(inv_r, bool) if mode == 'all' else inv_r <= 1.0 / CLUSTER_MIN_RANGE
   if far.sum() < 100:  # (a sweep of a room: every point near)
     far = np.ones_like(inv_r, bool)
@@ -239,10 +274,9 @@ def _clusters(sin_el, inv_r, mode, source='the sweeps'):
   v = max(OFFSET_GRID_M, key=lambda t: sharpness(t, rho))
   rho = max(RADIAL_GRID_M, key=lambda t: sharpness(v, t))
   hist, edges = np.histogram(y - _geometry(y, v, rho) * x, bins=bins)
-  occupied = hist >= max(2, 1e-4 * far.sum())
+  occupied = (hist >= max(2, 1e-4 * far.sum())) | _spikes(hist)
   # A beam is a run of occupied bins; runs split at an empty bin.
-  starts = np.flatnonzero(occupied & ~np.r_[False, occupied[:-1]])
-  ends = np.flatnonzero(occupied & ~np.r_[occupied[1:], False])
+  starts, ends = _runs(occupied)
   if len(starts) > MAX_BEAMS_FOUND:
     lo_deg, hi_deg = np.rad2deg(np.arcsin(np.percentile(y, [1, 99])))
     raise DataError(
@@ -259,7 +293,12 @@ def _clusters(sin_el, inv_r, mode, source='the sweeps'):
   centres = np.sort(centres)[::-1]  # top first
   b = _geometry(centres, v, rho)
   beam = _nearest(sin_el, inv_r, centres, b, np.arange(len(centres)))
-  return beam, len(centres)
+  on = np.ones(len(beam), bool)
+  if len(centres) > 1:
+    corrected = sin_el - b[beam] * inv_r
+    on = ((corrected <= centres[0] + 0.5 * (centres[0] - centres[1])) &
+          (corrected >= centres[-1] - 0.5 * (centres[-2] - centres[-1])))
+  return beam, len(centres), on
 
 
 def _one_line_per_beam(sin_el, inv_r, beam, n):
@@ -409,7 +448,7 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
                     'return?); a sweep has thousands')
   sin_el, inv_r = p[:, 2] / r, 1.0 / r
   azimuth = np.arctan2(p[:, 1], p[:, 0])
-  left_out = []
+  left_out, beyond = [], 0
   if use_ring:
     ids = np.concatenate([a[k] for a, k in zip(rings, keep)]).astype(np.int64)
     seen = np.unique(np.concatenate([a[k] for a, k in zip(rings, returned)]))
@@ -441,13 +480,17 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   else:
     best = None
     for mode in ('all', 'far'):  # all points vote, or only the far ones
-      beam, n = _clusters(sin_el, inv_r, mode, named)
-      beam, n = _one_line_per_beam(sin_el, inv_r, beam, n)
-      a, b, rms, free = _fit_lines(sin_el, inv_r, beam, n)
-      score = np.sqrt(np.mean(np.nan_to_num(rms) ** 2))
+      beam, n, on = _clusters(sin_el, inv_r, mode, named)
+      beam, n = _one_line_per_beam(sin_el[on], inv_r[on], beam[on], n)
+      a, b, rms, free = _fit_lines(sin_el[on], inv_r[on], beam, n)
+      # How far every point lies from its nearest line (those not fitted too).
+      closest = _nearest(sin_el, inv_r, a, b, np.arange(n))
+      score = np.sqrt(np.mean((sin_el - a[closest] - b[closest] * inv_r) ** 2))
       if best is None or score < best[0]:
-        best = (score, beam, n, a, b, rms, free)
-    _, beam, n, a, b, rms, free = best
+        best = (score, beam, n, a, b, rms, free, on)
+    _, beam, n, a, b, rms, free, on = best
+    beyond = int((~on).sum())
+    p, r, sin_el, inv_r, azimuth = p[on], r[on], sin_el[on], inv_r[on], azimuth[on]
     uniq = np.arange(n)
     inferred_ids = set()
   top_first = np.argsort(-a, kind='stable')
@@ -477,4 +520,5 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   return Estimate(spec, points=len(p), beams_measured=len(a) - len(inferred),
                   beams_inferred=inferred, rms_deg=np.rad2deg(rms),
                   agreement=float(np.mean(nearest == own)), firings=firings, near=near,
-                  rings_left_out=left_out, offsets_from_geometry=int(free))
+                  rings_left_out=left_out, offsets_from_geometry=int(free),
+                  beyond=beyond)
