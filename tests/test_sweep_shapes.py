@@ -231,3 +231,15 @@ def test_a_sweep_of_placeholders_only_says_so_in_one_line():
       r'^a\.pcd\.bin: only 0 returns beyond 0\.5 m to estimate a sensor from \([\d]+ nearer: '
       r'placeholders of beams without a return\?\); a sweep has thousands$')):
     estimate.estimate([near], sources=['a.pcd.bin'])
+
+
+def test_sparse_noise_is_no_sensor_in_one_line():
+  # Too few points for the clusters to say so (each "beam" a few points):
+  # the azimuth spacing within the beams found does.
+  noise = np.random.default_rng(0).normal(0, 5, (3000, 3))
+  with pytest.raises(DataError, match=(
+      r'^noise\.bin: no beam structure found: the returns of one beam lie [\d.]+ degrees '
+      r'apart in azimuth on the median \(\d+ per revolution\), where a spinning LiDAR fires '
+      r'at least 64 times a revolution; not a LiDAR sweep, or one thinned out\? Give its '
+      r'sensor spec instead \(--sensor PATH\)$')):
+    estimate.estimate([noise], sources=['noise.bin'])

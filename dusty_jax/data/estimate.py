@@ -83,6 +83,11 @@ SAME_SENSOR_RATIO = 1.5
 # sweep holds several beams its elevations cannot tell apart.
 MAX_RETURNS_PER_FIRING = 2.5
 NEAREST_CHUNK = 2 ** 22  # points x beams compared at a time (memory bound)
+# Far fewer firings per revolution than any spinning LiDAR makes (Ouster's
+# fewest columns are 512, a Velodyne at 20 Hz fires about 900 times): the
+# returns of each "beam" found are not one beam's sweep (sparse noise, or a
+# sweep thinned out).
+MIN_FIRINGS = 64
 
 
 @dataclasses.dataclass
@@ -356,8 +361,10 @@ def _check_one_sensor(xyz, rings, sources):
         'out, or list one sensor\'s in train.txt')
 
 
-def _firings(azimuth, beam, n) -> int:
-  """Firings per revolution from the median azimuth step within a beam."""
+def _firings(azimuth, beam, n, source) -> int:
+  """Firings per revolution from the median azimuth step within a beam;
+  DataError naming ``source`` where there are too few to measure, or fewer
+  than MIN_FIRINGS (no beam's returns follow each other around)."""
   steps = []
   for j in range(n):
     a = np.sort(azimuth[beam == j])
@@ -366,8 +373,17 @@ def _firings(azimuth, beam, n) -> int:
       steps.append(d[d > 1e-4])
   steps = np.concatenate(steps) if steps else np.array([])
   if not steps.size:
-    raise DataError('too few points per beam to measure the azimuth spacing')
-  return int(round(2 * np.pi / np.median(steps)))
+    raise DataError(f'{source}: too few points per beam to measure the azimuth spacing; '
+                    'give its sensor spec instead (--sensor PATH)')
+  firings = int(round(2 * np.pi / np.median(steps)))
+  if firings < MIN_FIRINGS:
+    raise DataError(
+        f'{source}: no beam structure found: the returns of one beam lie '
+        f'{np.rad2deg(np.median(steps)):.1f} degrees apart in azimuth on the median '
+        f'({firings} per revolution), where a spinning LiDAR fires at least {MIN_FIRINGS} '
+        'times a revolution; not a LiDAR sweep, or one thinned out? Give its sensor spec '
+        'instead (--sensor PATH)')
+  return firings
 
 
 def _named(sources) -> str:
@@ -501,7 +517,7 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   row_of[top_first] = np.arange(len(top_first))
   own = row_of[beam]
   nearest = _nearest(sin_el, inv_r, a, b, np.arange(len(a)))
-  firings = _firings(azimuth, own, len(a))
+  firings = _firings(azimuth, own, len(a), named)
   _check_beams(a, own, firings, len(xyz), sources)
   if width is None:
     width = next((w for w in WIDTHS if w <= firings), max(16, firings // 16 * 16))
