@@ -176,7 +176,9 @@ def picture_kitti(params, path):
 def main(argv=None):
   a = parse_args(argv)
   machine = common.print_banner()
+  import dusty_jax
   from dusty_jax.data import synthetic
+  dusty_jax.enable_compilation_cache()  # as the commands: compile_and_run_s with it on
   params = load(a.model)
   if params.encoder is None:
     sys.exit(f'{a.model} has no encoder: train one with python -m '

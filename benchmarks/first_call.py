@@ -51,6 +51,9 @@ import numpy as np
 from dusty_jax import codec
 from dusty_jax.data import simulated_lidar
 assert dusty_jax.__file__.startswith(sys.argv[1]), dusty_jax.__file__
+# A program's own call since the library stopped switching the cache on (older
+# checkouts: load_pretrained and invert switched it on themselves).
+getattr(dusty_jax, 'enable_compilation_cache', lambda: None)()
 case, model, steps, num = sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
 params = dusty_jax.load_pretrained(model)
 scans = np.asarray(codec.encode(np.stack([simulated_lidar.render_scan(7 + i, params.sensor).depth

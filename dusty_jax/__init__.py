@@ -9,6 +9,10 @@ Public API:
   invert(params, scan, ...) -> latent search reconstruction
   render_drops(params, scan) -> realistic point-drops for a clean scan
   restore(params, depth, known) -> a damaged or sparse scan filled (restoration.py)
+  enable_compilation_cache() -> JAX's persistent compilation cache on, for the whole
+                           program, under ~/.cache/dusty_jax/xla (xla_cache.py): a new
+                           process compiles invert's and sample's programs once. The
+                           library's calls never switch it on; the command lines do.
 
 Command lines: ``python -m dusty_jax.train`` and ``python -m dusty_jax.tools.NAME``.
 """
@@ -22,6 +26,7 @@ from typing import TYPE_CHECKING
 _API = {
     'GeneratorParams': ('dusty_jax.generator', 'GeneratorParams'),
     'SensorSpec': ('dusty_jax.sensor', 'SensorSpec'),
+    'enable_compilation_cache': ('dusty_jax.xla_cache', 'enable'),
     'generate': ('dusty_jax.sampling', 'generate'),
     'get_sensor': ('dusty_jax.sensor', 'get_sensor'),
     'invert': ('dusty_jax.inversion', 'invert'),
@@ -41,6 +46,7 @@ if TYPE_CHECKING:  # what the names are, for readers and type checkers
   from dusty_jax.restoration import restore
   from dusty_jax.sampling import generate, sample
   from dusty_jax.sensor import SensorSpec, get_sensor
+  from dusty_jax.xla_cache import enable as enable_compilation_cache
 
 
 def __getattr__(name):

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from dusty_jax import codec, errors, layers, xla_cache
+from dusty_jax import codec, errors, layers
 from dusty_jax.codec import ALPHA
 from dusty_jax.models import EqualConv, check_shape
 
@@ -125,7 +125,6 @@ def encode(params, scans, impl: str | None = None):
   scans = jnp.asarray(codec.check_precision(scans, 'scans'), jnp.float32)
   if errors.is_concrete(scans):  # traced: the caller cleaned them (inversion)
     scans = jnp.where(jnp.isfinite(scans), scans, ALPHA)
-  xla_cache.enable()
   return _encode(params, scans, impl)
 
 

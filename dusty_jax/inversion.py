@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dusty_jax import codec, encoder as encoder_lib, errors, pretrained, sampling, xla_cache
+from dusty_jax import codec, encoder as encoder_lib, errors, pretrained, sampling
 from dusty_jax.codec import ALPHA
 from dusty_jax.generator import GeneratorParams
 
@@ -244,7 +244,6 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     empty out).
   """
   num_steps = errors.check_count(num_steps, 'num_steps')
-  xla_cache.enable()
   if not isinstance(lr, jax.core.Tracer) and not (
       np.ndim(lr) == 0 and np.isfinite(lr) and lr > 0):
     raise ValueError(f'lr={lr!r}: the learning rate must be a finite number > 0')

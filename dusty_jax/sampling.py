@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, errors, sensor, xla_cache
+from dusty_jax import codec, errors, sensor
 from dusty_jax.generator import GeneratorParams
 
 # The largest latent component generate() takes. Latents are draws of
@@ -47,7 +47,6 @@ def generate(params: GeneratorParams, z, key, train: bool = False,
                      f"{params.latent_dim}), {params.latent_dim} being this generator's "
                      'latent_dim')
   check_latents(z, 'z')
-  xla_cache.enable()
   return _generate(full_precision(params), jnp.asarray(z, jnp.float32), as_key(key),
                    train, impl)
 
@@ -118,7 +117,6 @@ def sample(params: GeneratorParams, key, num: int, impl: str | None = None):
   """
   num = errors.check_count(num, 'num')
   check_params(params)
-  xla_cache.enable()
   key = as_key(key)
   if key.shape != ():
     raise ValueError(f'key: expected one key, got shape {key.shape}')

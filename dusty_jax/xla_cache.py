@@ -1,12 +1,15 @@
 """JAX's persistent compilation cache, under the dusty_jax cache directory.
 
 Compiling the inversion's search or a sampler takes seconds on a CPU, each
-time a process starts. The command lines (cli.run) and the library's heavy
-entry points (invert, sample, generate, encoder.encode, load_pretrained)
-call :func:`enable`, so a second process making the same call loads the
-compiled program from ``$DUSTY_JAX_CACHE/xla`` (default
-``~/.cache/dusty_jax/xla``) instead of compiling it again. That is JAX's
-own cache, turned on through ``jax.config`` for the whole process.
+time a process starts. :func:`enable` turns JAX's own persistent cache on,
+through ``jax.config``, for the whole process, so that a second process
+making the same call loads the compiled program from
+``$DUSTY_JAX_CACHE/xla`` (default ``~/.cache/dusty_jax/xla``) instead of
+compiling it again. A program switches it on where it starts: the command
+lines do (cli.run, which train and every tool go through), and a library
+user's program calls ``dusty_jax.enable_compilation_cache()``. The
+library's own calls (invert, sample, load_pretrained, ...) never do: they
+leave a caller's JAX settings as they were.
 
 ``DUSTY_JAX_COMPILATION_CACHE=0`` (or ``off``, ``false``, ``no``) leaves
 JAX's cache alone. A cache directory the user configured for JAX
@@ -82,8 +85,16 @@ def directory() -> str:
 
 
 def enable() -> str | None:
-  """Turns the persistent compilation cache on (once per process); returns
-  the directory in use, or None when it is off. Cheap after the first call."""
+  """Turns JAX's persistent compilation cache on for the whole process (once;
+  cheap after the first call): ``dusty_jax.enable_compilation_cache()``.
+
+  Sets ``jax.config``'s ``jax_compilation_cache_dir`` to
+  ``$DUSTY_JAX_CACHE/xla`` (``~/.cache/dusty_jax/xla``) and, where it is
+  still JAX's default, ``jax_persistent_cache_min_compile_time_secs`` to
+  MIN_COMPILE_SECS; a cache directory the program set already is kept, and
+  ``DUSTY_JAX_COMPILATION_CACHE=0`` changes nothing. Returns the directory
+  in use, or None when the cache is off.
+  """
   if _state['done']:
     return _state['directory']
   _state['done'] = True

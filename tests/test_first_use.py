@@ -2,6 +2,7 @@
 the compilation cache, `import dusty_jax` stays light, a pretrained name works
 where a run directory is taken, and a mistake ends in one short error."""
 
+import json
 import os
 import re
 import shutil
@@ -36,8 +37,8 @@ def _python(code: str, env_update: dict, drop=(), cwd=None):
 # A program that compiles, then what JAX's cache settings are.
 _COMPILE = '''
 import jax, jax.numpy as jnp
-from dusty_jax import xla_cache
-print(xla_cache.enable())
+import dusty_jax
+print(dusty_jax.enable_compilation_cache())
 print(jax.jit(lambda x: jnp.sin(x) * 2 + 1)(jnp.arange(5.0)).sum())
 print(jax.config.jax_compilation_cache_dir)
 print(jax.config.jax_persistent_cache_min_compile_time_secs)
@@ -78,6 +79,70 @@ def test_the_cache_is_off_when_asked_and_a_users_own_is_kept(tmp_path):
                             'JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS': '3'}).split()
   assert kept[0] == own and kept[2] == own and float(kept[3]) == 3
   assert not (tmp_path / 'xla').exists()
+
+
+# A library user's program that never asks for the cache: JAX's cache
+# settings before and after each public call (a tiny DUSty-I of random
+# weights with an encoder, as tests/test_extremes.py's), then after the
+# program asks.
+_LIBRARY_CALLS = '''
+import json, os
+import jax, jax.numpy as jnp, numpy as np
+import dusty_jax
+from dusty_jax import encoder, generator
+from dusty_jax.models import ModelSettings
+from dusty_jax.sensor import tiny_sensor
+NAMES = ('jax_compilation_cache_dir', 'jax_persistent_cache_min_compile_time_secs',
+         'jax_persistent_cache_min_entry_size_bytes', 'jax_enable_compilation_cache')
+seen = {}
+def note(what):
+  seen[what] = {n: getattr(jax.config, n) for n in NAMES}
+note('start')
+dusty_jax.load_pretrained('sim-dusty1')
+note('load_pretrained')
+sensor = tiny_sensor(16, 64)
+settings = ModelSettings(model='dusty1', latent_dim=16, ch_base=8, ch_max=16)
+params = generator.GeneratorParams(
+    variables=settings.generator(sensor).init(jax.random.key(0), jnp.zeros((1, 16))),
+    angles=jnp.asarray(sensor.nominal_angles(), jnp.float32), sensor=sensor, settings=settings)
+enc_settings = encoder.EncoderSettings(ch_base=4, ch_max=8, hidden=16)
+params = params.replace(encoder=encoder.Encoder(sensor, 16, enc_settings, 'xla').init(
+    jax.random.key(1), jnp.zeros((1,) + sensor.shape)), encoder_settings=enc_settings)
+scans = dusty_jax.sample(params, jax.random.key(2), 2)['scan']
+note('sample')
+dusty_jax.generate(params, np.zeros((2, 16), np.float32), jax.random.key(3))
+note('generate')
+encoder.encode(params, scans)
+note('encode')
+dusty_jax.invert(params, scans, num_steps=2, init='encoder')
+dusty_jax.invert(params, scans, num_steps=2)
+note('invert')
+made = os.listdir(os.environ['DUSTY_JAX_CACHE'])
+dusty_jax.enable_compilation_cache()
+note('asked')
+print(json.dumps({'settings': seen, 'made': made}))
+'''
+
+
+def test_library_calls_leave_the_cache_settings_as_they_were(tmp_path):
+  """Importing dusty_jax and calling it switches no cache on; the program's
+  own call does, and so does a command line's start."""
+  out = _python(_LIBRARY_CALLS, {'DUSTY_JAX_CACHE': str(tmp_path)}, drop=_OWN_CACHE)
+  seen, made = json.loads(out.splitlines()[-1]).values()
+  start = seen.pop('start')
+  assert start['jax_compilation_cache_dir'] is None  # JAX's default: no cache
+  asked = seen.pop('asked')
+  assert seen == {call: start for call in ('load_pretrained', 'sample', 'generate', 'encode',
+                                           'invert')}
+  assert made == []  # nothing written under the dusty_jax cache
+  assert asked == dict(start, jax_compilation_cache_dir=str(tmp_path / 'xla'),
+                       jax_persistent_cache_min_compile_time_secs=xla_cache.MIN_COMPILE_SECS)
+  # A command line switches it on where it starts (train and every tool run
+  # through cli.run).
+  code = ('import jax\nfrom dusty_jax import cli\n'
+          'cli.run(lambda: print(jax.config.jax_compilation_cache_dir))')
+  assert _python(code, {'DUSTY_JAX_CACHE': str(tmp_path / 'cli')},
+                 drop=_OWN_CACHE).split() == [str(tmp_path / 'cli' / 'xla')]
 
 
 def _entries(folder):

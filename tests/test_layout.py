@@ -162,6 +162,34 @@ def test_the_library_changes_no_process_wide_hook():
   assert not bad, f'process-wide hooks swapped: {bad}'
 
 
+def test_only_the_command_lines_switch_the_compilation_cache_on():
+  """JAX's persistent cache is a process-wide setting: cli.run switches it
+  on where a command starts, a library user's program with
+  dusty_jax.enable_compilation_cache() (the public API's name for it); no
+  computing module imports it."""
+  assert {name for name, deps in GRAPH.items() if 'dusty_jax.xla_cache' in deps} == {
+      'dusty_jax', 'dusty_jax.cli'}
+
+
+def _runs_through_cli(path: str) -> bool:
+  """Whether ``path`` calls ``cli.run`` or ``tools.run`` (the same function)."""
+  return any(isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+             and ast.unparse(node.func) in ('cli.run', 'tools.run')
+             for node in ast.walk(ast.parse(open(path).read(), path)))
+
+
+def test_every_command_line_runs_through_cli():
+  """So each starts with the compilation cache on and ends a user's error in
+  one line."""
+  commands = [os.path.join(ROOT, 'train.py')] + [
+      os.path.join(ROOT, 'tools', f) for f in os.listdir(os.path.join(ROOT, 'tools'))
+      if f.endswith('.py') and f != '__init__.py']
+  assert len(commands) >= 7
+  assert not _runs_through_cli(os.path.join(ROOT, 'inversion.py'))  # the check can say no
+  bad = [os.path.relpath(p, REPO) for p in commands if not _runs_through_cli(p)]
+  assert not bad, f'command lines not run through cli.run: {bad}'
+
+
 def test_the_name_check_sees_comparisons(tmp_path):
   p = tmp_path / 'x.py'
   p.write_text("a = m == 'dusty2'\nb = m in ('baseline', 'x')\nc = {'dusty1': 1}\n")

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 
-from dusty_jax import generator, xla_cache
+from dusty_jax import generator
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -36,7 +36,6 @@ def load_pretrained(name: str):
   path = path_of(name)
   if not os.path.isfile(path):
     raise ValueError(f'no pretrained model {name!r}; available: {available()}')
-  xla_cache.enable()  # what a shipped model is for: invert and sample, compiled once
   return generator.load_file(path)
 
 
