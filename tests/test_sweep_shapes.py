@@ -204,15 +204,19 @@ def test_ouster_estimate_without_a_ring_field(model, person):
       <= WITHIN_DEG
 
 
-@pytest.mark.parametrize('model', ['os0-128', 'os1-32-below-horizon', 'os2-128'])
-def test_ouster_estimate_and_rows_with_its_ring_field(model):
-  xyz, ring, el, b = ouster_like(model, seed=2)
+@pytest.mark.parametrize('model, person', [
+    ('os0-128', False), ('os1-32-below-horizon', True), ('os2-128', True)])
+def test_ouster_estimate_and_rows_with_its_ring_field(model, person):
+  xyz, ring, el, b = ouster_like(model, person=person)
   fit = estimate.estimate([{'x': xyz[:, 0], 'y': xyz[:, 1], 'z': xyz[:, 2], 'ring': ring}])
-  # Every beam, those that saw only sky interpolated from the ring ids.
+  # Every beam, those that saw only sky (their placeholders only)
+  # interpolated from the ring ids, with their neighbours' offsets.
   assert fit.spec.height == len(el)
   r = np.linalg.norm(xyz, axis=1)
   measured = np.bincount(ring[r >= estimate.FIT_MIN_RANGE], minlength=len(el)) > 0
   assert fit.beams_inferred == np.flatnonzero(~measured).tolist()
+  assert person or len(fit.beams_inferred) >= 10
+  np.testing.assert_allclose(fit.spec.vertical_offset_m, b, atol=2e-3)
   np.testing.assert_allclose(np.asarray(fit.spec.elevation_deg)[measured], el[measured],
                              atol=WITHIN_DEG)
   u = unfolding.unfold(xyz, fit.spec, ring=ring)

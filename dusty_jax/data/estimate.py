@@ -486,7 +486,7 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
             (a[-1] - a[-2]) / (uniq[-1] - uniq[-2]))
         fill[k] = a[end] + step * (missing[k] - uniq[end])
       a = np.concatenate([a, fill])
-      b = np.concatenate([b, np.zeros(len(missing))])
+      b = np.concatenate([b, np.interp(missing, uniq, b)])  # (beyond the ends: the end's)
       rms = np.concatenate([rms, np.full(len(missing), np.nan)])
       inferred_ids = set(missing.tolist())
       uniq = np.concatenate([uniq, missing])
