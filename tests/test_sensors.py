@@ -246,8 +246,8 @@ def test_estimated_specs_match_the_published_tables():
   assert vlp.beams_inferred == [15] and vlp.beams_measured == 15
   err = np.abs(np.asarray(vlp.spec.elevation_deg) - PRESETS['vlp16'].elevation_deg)
   assert err.mean() <= 0.05 and err[:15].max() < 1e-3
-  # Without its ring field: the 15 beams that returned (the bottom one has
-  # its returns all within 1 m, where no far point votes for it).
+  # Without its ring field: the 15 beams that returned (the lowest of them
+  # has all its returns within 1 m, where no far point votes for it).
   bare = estimate.estimate([{k: v for k, v in points.read_points(
       sample('vlp16_ring.pcd')).items() if k != 'ring'}])
   np.testing.assert_allclose(bare.spec.elevation_deg, PRESETS['vlp16'].elevation_deg[:15],
