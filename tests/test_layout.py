@@ -7,8 +7,11 @@ call time is still a dependency, and a cycle of them is still a cycle.
 """
 
 import ast
+import importlib
+import importlib.util
 import os
 import re
+import types
 
 import pytest
 
@@ -283,13 +286,157 @@ def test_nothing_of_the_product_imports_the_research_record():
   """benchmarks/research/ holds probes and their records; the library, the
   tests and the product benchmarks (benchmarks/*.py) never depend on it."""
   research = _research_modules()
-  assert {'drops_screen', 'conv_forms'} <= research
+  assert {'placement_curve', 'conv_forms'} <= research
   product = list(_python_files('dusty_jax', 'tests')) + [
       os.path.join(REPO, 'benchmarks', f) for f in os.listdir(os.path.join(REPO, 'benchmarks'))
       if f.endswith('.py')]
   bad = {os.path.relpath(p, REPO): lines for p in product
          if (lines := _research_imports(p, research))}
   assert not bad, f'imports of benchmarks/research: {bad}'
+
+
+_SCOPES = (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)
+_NOT_FOLLOWED = object()
+
+
+def _bindings(scope) -> tuple:
+  """({name: (line, what it imports)}, {names bound otherwise}) of one
+  scope, its nested scopes left out. What an import takes is
+  ('dusty_jax.data.pipeline',) or ('dusty_jax.data', 'pipeline')."""
+  imports, other = {}, set()
+  if isinstance(scope, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+    other |= {a.arg for a in ast.walk(scope.args) if isinstance(a, ast.arg)}
+  todo = list(scope.body) if isinstance(scope.body, list) else [scope.body]
+  while todo:
+    node = todo.pop()
+    if isinstance(node, ast.Import):
+      for a in node.names:
+        imports[a.asname or a.name.split('.')[0]] = (node.lineno, (a.name,))
+    elif isinstance(node, ast.ImportFrom) and node.level == 0:
+      for a in node.names:
+        imports[a.asname or a.name] = (node.lineno, (node.module, a.name))
+    elif isinstance(node, _SCOPES):
+      other.add(getattr(node, 'name', None))
+      continue
+    elif isinstance(node, ast.Name) and not isinstance(node.ctx, ast.Load):
+      other.add(node.id)
+    todo.extend(ast.iter_child_nodes(node))
+  return imports, other
+
+
+def _top_names(path: str) -> set:
+  """The names a script defines at its top level (functions, classes,
+  assignments, imports)."""
+  imports, other = _bindings(ast.parse(open(path).read(), path))
+  return set(imports) | other
+
+
+def _unresolved(path: str, folders=()) -> list:
+  """'LINE: what' for each name ``path`` takes from dusty_jax, from a script
+  beside it (or in ``folders``: benchmarks/ for common.py) or from an
+  installed package that is not there: an import, or an attribute of an
+  imported module used anywhere in the script (``configs.study(...)``). A
+  name a scope also binds otherwise (a local ``sensor``) is not followed."""
+  siblings = {}
+  for d in (os.path.dirname(path),) + tuple(folders):
+    siblings.update({f[:-3]: os.path.join(d, f) for f in os.listdir(d)
+                     if f.endswith('.py') and f[:-3] not in siblings})
+
+  def find(what):
+    """The module object, a script's path, or None (gone); _NOT_FOLLOWED for
+    what this check does not look into (a package outside dusty_jax, a
+    script's function)."""
+    module, *name = what
+    top = module.split('.')[0]
+    if top in siblings and top == module:
+      if not name:
+        return siblings[top]
+      return _NOT_FOLLOWED if name[0] in _top_names(siblings[top]) else None
+    if top != 'dusty_jax':
+      return _NOT_FOLLOWED if importlib.util.find_spec(top) else None
+    try:
+      obj = importlib.import_module(module)
+    except ImportError:
+      return None
+    return attribute(obj, name[0]) if name else obj
+
+  def attribute(obj, name):
+    if hasattr(obj, name):
+      return getattr(obj, name)
+    try:
+      return importlib.import_module(f'{obj.__name__}.{name}')
+    except ImportError:
+      return None
+
+  problems = []
+
+  def visit(scope, stack):
+    imports, other = _bindings(scope)
+    stack = stack + [(imports, other)]
+    for line, what in imports.values():
+      if find(what) is None:
+        problems.append(f'{line}: import of {".".join(what)}')
+    todo = list(ast.iter_child_nodes(scope))
+    while todo:
+      node = todo.pop()
+      if isinstance(node, _SCOPES):
+        visit(node, stack)
+        continue
+      todo.extend(ast.iter_child_nodes(node))
+      if not isinstance(node, ast.Attribute):
+        continue
+      chain, base = [], node
+      while isinstance(base, ast.Attribute):
+        chain.insert(0, base.attr)
+        base = base.value
+      if not isinstance(base, ast.Name):
+        continue
+      where = next((s for s in reversed(stack) if base.id in s[0] or base.id in s[1]), None)
+      if where is None or base.id in where[1] or base.id not in where[0]:
+        continue
+      what = where[0][base.id][1]
+      if len(what) == 1 and what[0].startswith(base.id + '.'):  # import a.b binds a
+        what = (base.id,)
+      obj = find(what)
+      if isinstance(obj, str):  # a script beside it: its top-level names
+        if chain[0] not in _top_names(obj):
+          problems.append(f'{node.lineno}: {base.id}.{chain[0]}')
+        continue
+      for i, attr in enumerate(chain):
+        if not isinstance(obj, types.ModuleType):
+          break
+        obj = attribute(obj, attr)
+        if obj is None:
+          problems.append(f'{node.lineno}: {base.id}.{".".join(chain[:i + 1])}')
+          break
+
+  visit(ast.parse(open(path).read(), path), [])
+  return sorted(set(problems), key=lambda p: (int(p.split(':')[0]), p))
+
+
+def test_the_resolution_check_sees_names_that_left(tmp_path):
+  (tmp_path / 'helper.py').write_text('def kept():\n  pass\n')
+  p = tmp_path / 'x.py'
+  p.write_text('import helper\nimport gone_script\nfrom helper import kept, dropped\n'
+               'from dusty_jax import configs, sensor\nimport dusty_jax.data.gone\n\n'
+               'def f(sensor):\n  return sensor.shape, configs.study(), helper.nothing\n\n'
+               'def g():\n  from dusty_jax.data import pipeline\n'
+               '  return pipeline.default_cache(), dusty_jax.invert, dusty_jax.nvert, '
+               'sensor.get_sensor, configs.validate\n')
+  assert _unresolved(str(p)) == ['2: import of gone_script', '3: import of helper.dropped',
+                                 '5: import of dusty_jax.data.gone', '8: configs.study',
+                                 '8: helper.nothing', '12: dusty_jax.nvert']
+
+
+def test_every_research_script_resolves_against_the_package():
+  """A research script that calls what left the library (configs.study)
+  leaves the tree, its record kept by the README naming the commit it ran
+  at; those that stay still import what they take."""
+  scripts = sorted(p for p in _python_files(os.path.join('benchmarks', 'research')))
+  assert len(scripts) >= 10
+  bad = {os.path.relpath(p, REPO): problems for p in scripts
+         if (problems := _unresolved(p, (BENCHMARKS,)))}
+  assert not bad, f'research scripts taking names that are gone: {bad}'
 
 
 def _documents() -> list:
