@@ -46,12 +46,13 @@ CLUSTER_MIN_RANGE = 3.0
 CLUSTER_BIN_DEG = 0.01     # histogram bins of the elevation structure
 # The beam-origin geometry tried for the sharpest elevations: a vertical
 # offset v (common to all beams near the horizon) and a radial one rho, on a
-# coarse grid of both, then each on its fine grid; from at most
-# GEOMETRY_POINTS points (an even stride through them).
+# coarse grid of both (every COARSE_STRIDE-th), then each on its fine grid
+# within a coarse step; from at most GEOMETRY_POINTS points (an even stride
+# through them).
 OFFSET_GRID_M = np.linspace(-0.1, 0.1, 201)
 RADIAL_GRID_M = np.linspace(-0.05, 0.05, 201)
 COARSE_STRIDE = 10
-GEOMETRY_POINTS = 200_000
+GEOMETRY_POINTS = 100_000
 OFFSET_MATTERS_M = 0.002   # fitted offsets all below this are left out
 # A beam that sees mostly sky returns too few points to fill its bins as
 # the others do; SPIKE_RETURNS of them within SPIKE_BINS bins, alone within
@@ -174,11 +175,20 @@ def _robust_line(y, x):
   return a, b, se
 
 
+def _densest(y):
+  """The mean of the largest group of ``y`` within SPIKE_BINS bins of one
+  of them: a beam of a few returns among strays of its neighbours (those
+  too sparse to find), where their median would lie between them."""
+  close = np.abs(y[:, None] - y[None, :]) <= SPIKE_BINS * np.sin(np.deg2rad(CLUSTER_BIN_DEG))
+  return float(np.mean(y[close[np.argmax(close.sum(1))]]))
+
+
 def _fit_lines(sin_el, inv_r, beam, n):
   """(a, b, rms of sin, offsets from the geometry) per beam id 0..n-1:
   robust lines where a beam's ranges pin its elevation (PINNED), else the
   beam's offset from the geometry fitted to those (:func:`_geometry`) and
-  its median; a NaN where a beam has no point."""
+  its median (of fewer than MIN_FIT_POINTS, its densest group); a NaN where
+  a beam has no point."""
   a, b, rms = np.full(n, np.nan), np.zeros(n), np.full(n, np.nan)
   pinned, weight = np.zeros(n, bool), np.zeros(n)
   order = np.argsort(beam, kind='stable')
@@ -201,10 +211,11 @@ def _fit_lines(sin_el, inv_r, beam, n):
     if not len(idx) or pinned[j]:
       continue
     y, x = sin_el[idx], inv_r[idx]
-    a[j] = np.median(y)
+    centre = np.median if len(idx) >= MIN_FIT_POINTS else _densest
+    a[j] = centre(y)
     for _ in range(3):  # b depends on the elevation it offsets
       b[j] = _geometry(a[j], v, rho)
-      a[j] = np.median(y - b[j] * x)
+      a[j] = centre(y - b[j] * x)
     free += 1
   for j, idx in enumerate(groups):
     if len(idx):
@@ -275,9 +286,13 @@ def _clusters(sin_el, inv_r, mode, source='the sweeps'):
   # on their fine grids.
   v, rho = max(((v, rho) for v in OFFSET_GRID_M[::COARSE_STRIDE]
                 for rho in RADIAL_GRID_M[::COARSE_STRIDE]), key=lambda t: sharpness(*t))
-  rho = max(RADIAL_GRID_M, key=lambda t: sharpness(v, t))
-  v = max(OFFSET_GRID_M, key=lambda t: sharpness(t, rho))
-  rho = max(RADIAL_GRID_M, key=lambda t: sharpness(v, t))
+
+  def around(grid, t):  # the fine grid within a coarse step of t
+    return grid[np.abs(grid - t) <= COARSE_STRIDE * (grid[1] - grid[0]) * 1.0001]
+
+  rho = max(around(RADIAL_GRID_M, rho), key=lambda t: sharpness(v, t))
+  v = max(around(OFFSET_GRID_M, v), key=lambda t: sharpness(t, rho))
+  rho = max(around(RADIAL_GRID_M, rho), key=lambda t: sharpness(v, t))
   hist, edges = np.histogram(y - _geometry(y, v, rho) * x, bins=bins)
   occupied = (hist >= max(2, 1e-4 * far.sum())) | _spikes(hist)
   # A beam is a run of occupied bins; runs split at an empty bin.
