@@ -14,7 +14,7 @@ import os
 
 import ml_collections
 
-from dusty_jax import drops as drops_lib, errors, gumbel, models, sensor as sensor_lib
+from dusty_jax import drops as drops_lib, errors, files, gumbel, models, sensor as sensor_lib
 from dusty_jax.data import arrays
 
 FILE = 'config.json'  # a run's config, in its directory
@@ -268,9 +268,8 @@ def save(workdir: str, config):
   """Writes a run's config (atomically)."""
   os.makedirs(workdir, exist_ok=True)
   path = os.path.join(workdir, FILE)
-  with open(path + '.tmp', 'w') as f:
+  with files.atomic_write(path) as f:
     f.write(config.to_json(indent=2))
-  os.replace(path + '.tmp', path)
 
 
 # A run config holds default()'s fields and what the trainer adds:

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct, traverse_util
 
-from dusty_jax import checkpoint, configs, encoder as encoder_lib, levels
+from dusty_jax import checkpoint, configs, encoder as encoder_lib, files, levels
 from dusty_jax.data import arrays
 from dusty_jax.models import ModelSettings
 from dusty_jax.sensor import SensorSpec, check_angles, from_config as sensor_from_config
@@ -114,9 +114,8 @@ def set_tolerance(workdir: str, tolerance: float):
 
 def _write_spec(workdir, sensor, settings, tolerance):
   path = os.path.join(workdir, SPEC_FILE)
-  with open(path + '.tmp', 'w') as f:
+  with files.atomic_write(path) as f:
     json.dump(describe(sensor, settings, tolerance), f, indent=2)
-  os.replace(path + '.tmp', path)
 
 
 def read_spec(workdir: str):
@@ -315,10 +314,9 @@ def save_encoder(path: str, variables, settings: encoder_lib.EncoderSettings,
                  info: dict | None = None):
   """Writes an encoder's variables and settings as one .npz (atomically)."""
   meta = {**(info or {}), 'settings': dataclasses.asdict(settings)}
-  tmp = path + '.tmp.npz'
-  np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)),
-                      **{f'encoder/{k}': v for k, v in flatten(variables).items()})
-  os.replace(tmp, path)
+  with files.atomic_write(path, 'wb') as f:
+    np.savez_compressed(f, meta=np.asarray(json.dumps(meta)),
+                        **{f'encoder/{k}': v for k, v in flatten(variables).items()})
   return path
 
 

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dusty_jax import codec, errors
+from dusty_jax import codec, errors, files
 from dusty_jax.sensor import SensorSpec
 
 EDGES = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)  # metres between depth bins
@@ -194,9 +194,8 @@ def with_levels(params, offset, source: str = 'depth levels'):
 def save(workdir: str, levels, step: int):
   """Writes a run's fitted levels (H, BINS) and the step they fit (atomically)."""
   path = os.path.join(workdir, FILE)
-  with open(path + '.tmp', 'wb') as f:
+  with files.atomic_write(path, 'wb') as f:
     np.savez(f, levels=np.asarray(levels, np.float32), step=np.int64(step))
-  os.replace(path + '.tmp', path)
 
 
 def load(workdir: str):

@@ -23,6 +23,7 @@ import os
 
 import numpy as np
 
+from dusty_jax import files
 from dusty_jax.errors import DataError
 
 
@@ -289,10 +290,9 @@ def load(path: str) -> SensorSpec:
 def save(spec: SensorSpec, path: str):
   """Writes ``spec`` as a JSON file :func:`load` reads (atomically)."""
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  with open(path + '.tmp', 'w') as f:
+  with files.atomic_write(path) as f:
     json.dump(spec.to_dict(), f, indent=1)
     f.write('\n')
-  os.replace(path + '.tmp', path)
 
 
 def from_ouster_metadata(path: str, width: int | None = None) -> SensorSpec:

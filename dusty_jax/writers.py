@@ -25,7 +25,7 @@ from PIL import Image
 from tensorboardX import event_file_writer, summary
 from tensorboardX.proto import event_pb2
 
-from dusty_jax import codec
+from dusty_jax import codec, files
 
 
 class MetricWriter:
@@ -48,9 +48,8 @@ class MetricWriter:
               keep.append(line if line.endswith('\n') else line + '\n')
           except (ValueError, KeyError):
             pass  # a line cut short by a kill
-      with open(path + '.tmp', 'w') as f:
+      with files.atomic_write(path) as f:
         f.writelines(keep)
-      os.replace(path + '.tmp', path)
     self.jsonl_path = path
     self.jsonl = open(path, 'a')
     self.events = event_file_writer.EventsWriter(os.path.join(workdir, 'events'))
