@@ -40,6 +40,8 @@ import zlib
 
 import jax
 
+from dusty_jax.data import pipeline
+
 try:  # JAX compresses entries with zstd where it can (zstandard, or Python 3.14's
   from compression import zstd  # compression.zstd), else with zlib.
 except ImportError:
@@ -71,17 +73,11 @@ log = logging.getLogger(__name__)
 _state = {'done': False, 'directory': None}
 
 
-def cache_root() -> str:
-  """The dusty_jax cache directory: ``$DUSTY_JAX_CACHE`` or
-  ``~/.cache/dusty_jax`` (the rule of data.pipeline.default_cache, which
-  data/ keeps for itself: the model side does not import the pipeline)."""
-  return os.environ.get('DUSTY_JAX_CACHE',
-                        os.path.join(os.path.expanduser('~'), '.cache', 'dusty_jax'))
-
-
 def directory() -> str:
-  """Where dusty_jax keeps compiled programs when the user named none."""
-  return os.path.join(cache_root(), 'xla')
+  """Where dusty_jax keeps compiled programs when the user named none: under
+  the cache of the simulated data (``$DUSTY_JAX_CACHE``, default
+  ``~/.cache/dusty_jax``)."""
+  return os.path.join(pipeline.default_cache(), 'xla')
 
 
 def enable() -> str | None:

@@ -54,7 +54,7 @@ def test_compiled_programs_go_under_the_dusty_jax_cache(tmp_path):
   # The cache root is the data pipeline's, under the same variable.
   os.environ['DUSTY_JAX_CACHE'], old = str(tmp_path), os.environ.get('DUSTY_JAX_CACHE')
   try:
-    assert xla_cache.cache_root() == pipeline.default_cache() == str(tmp_path)
+    assert xla_cache.directory() == os.path.join(pipeline.default_cache(), 'xla') == where
   finally:
     os.environ.pop('DUSTY_JAX_CACHE') if old is None else os.environ.update(
         DUSTY_JAX_CACHE=old)
