@@ -39,6 +39,7 @@ import time
 import numpy as np
 
 import common
+from dusty_jax import files
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # Run name -> (model, drops preset) of experiments/study.py.
@@ -147,10 +148,8 @@ class Cache:
       t = time.time()
       self.data[name] = fn()
       self.data['seconds'] = dict(self.data.get('seconds', {}), **{name: time.time() - t})
-      tmp = self.path + '.tmp'
-      with open(tmp, 'w') as f:
+      with files.atomic_write(self.path) as f:
         json.dump(self.data, f, indent=1)
-      os.replace(tmp, self.path)
     return self.data[name]
 
 
