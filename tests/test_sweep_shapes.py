@@ -228,6 +228,39 @@ def test_ouster_estimate_and_rows_with_its_ring_field(model, person):
   assert np.abs(_ring_residuals_deg(xyz[use], ring[use], fit.spec)).max() <= WITHIN_DEG
 
 
+# --- Velodyne: each laser's own vertical offset -----------------------------------
+
+def hdl64e_like(seed=0):
+  """(spec, xyz, true rows, true offsets b) of an HDL-64E sweep as its
+  driver computes it: each laser's vertical offset (its calibration's
+  vert_offset_correction, about 0.2 m on the upper block and 0.15 m on the
+  lower, a centimetre apart from laser to laser) added to z, so that
+  sin(elevation) = sin(el) + v cos^2(el) / range to first order."""
+  spec = dataclasses.replace(PRESETS['hdl64e'], width=PRESETS['hdl64e'].native_width)
+  unit = np.random.default_rng(64)
+  v = np.r_[np.full(32, 0.2), np.full(32, 0.15)] + unit.normal(0, 0.01, 64)
+  depth = _rendered(spec, seed)
+  hit = depth > 0
+  xyz = depth[..., None] * simulated_lidar.ray_directions(spec)
+  xyz[..., 2] += v[:, None]
+  return spec, xyz[hit], np.nonzero(hit)[0], v * np.cos(spec.elevation) ** 2
+
+
+def test_velodyne_vertical_offsets_estimate_without_a_ring_field():
+  spec, xyz, rows, b = hdl64e_like()
+  fit = estimate.estimate([xyz])
+  assert fit.spec.height == 64
+  np.testing.assert_allclose(fit.spec.elevation_deg, spec.elevation_deg, atol=WITHIN_DEG)
+  # Offsets of 150-200 mm to 5 mm (the lowest beams see the ground at
+  # nearly one range, which leaves theirs loose).
+  np.testing.assert_allclose(fit.spec.vertical_offset_m, b, atol=5e-3)
+  r = np.linalg.norm(xyz, axis=1)
+  row, _ = unfolding.nearest_beam(xyz[:, 2] / r, r, fit.spec)
+  use = _in_range(xyz, fit.spec)
+  assert np.mean(row[use] == rows[use]) >= ROWS_RIGHT
+  assert np.abs(_ring_residuals_deg(xyz[use], rows[use], fit.spec)).max() <= WITHIN_DEG
+
+
 # --- What cannot be fitted: one line ---------------------------------------------
 
 def test_a_sweep_of_placeholders_only_says_so_in_one_line():

@@ -72,6 +72,13 @@ MIN_FIT_POINTS = 8         # fewer returns: the beam's median, offset from the g
 # Two fitted beams closer than this (degrees) at every range are one beam
 # that the clusters split.
 SAME_BEAM_DEG = 0.5 * CLUSTER_BIN_DEG
+ONE_LINE_FACTOR = 2.0  # (_one_line)
+SPLIT_FACTOR = 5.0  # (_split_wide)
+# A line whose points lie this close (degrees) to another's is not a beam of
+# its own: a third of the finest beam spacing of spinning LiDARs (0.1
+# degrees: RoboSense's Ruby, Velodyne's VLS-128 0.11).
+REDUNDANT_DEG = 0.03
+REASSIGN_PASSES = 10  # most passes of fits and reassignment (_one_line_per_beam)
 WIDTHS = (2048, 1024, 512, 256)  # image widths an estimate proposes
 # More clusters of elevations than any spinning LiDAR has beams: the points
 # have no beam structure (noise, or not a LiDAR's sweep).
@@ -321,22 +328,112 @@ def _clusters(sin_el, inv_r, mode, source='the sweeps'):
   return beam, len(centres), on
 
 
+def _one_line(sin_el, inv_r, first, second, line1, line2) -> bool:
+  """Whether one line fits the points ``first`` and ``second`` (indices)
+  as well as each group's own line (``line1``, ``line2``: (a, b)) fits it:
+  each group's median absolute residual from the line of both within
+  ONE_LINE_FACTOR of its own (or of RESIDUAL_FLOOR); a group too small to
+  fit (under MIN_FIT_POINTS) is asked to lie on the other's line. A beam the
+  clusters split by range passes; two beams fail (the line of both fits one
+  at most)."""
+  small = [len(g) < MIN_FIT_POINTS for g in (first, second)]
+  if all(small):
+    return False
+  if any(small):
+    a, b = line2 if small[0] else line1
+  else:
+    a, b, _ = _robust_line(sin_el[np.r_[first, second]], inv_r[np.r_[first, second]])
+  groups = (first, second)
+  own = [np.median(np.abs(sin_el[g] - a_g - b_g * inv_r[g]))
+         for g, (a_g, b_g) in zip(groups, (line1, line2))]
+  fitted = max(o for o, s in zip(own, small) if not s)  # (a small group: the other's spread)
+  return all(np.median(np.abs(sin_el[g] - a - b * inv_r[g])) <= ONE_LINE_FACTOR * max(
+      fitted if s else o, RESIDUAL_FLOOR) for g, o, s in zip(groups, own, small))
+
+
+def _redundant(sin_el, inv_r, beam, a, b):
+  """Beams whose points another line fits as well as their own (median
+  absolute residual within ONE_LINE_FACTOR of it), or within REDUNDANT_DEG:
+  a line through the points where other beams' lines cross (beams with
+  offsets of their own), or a piece the clusters split off a beam (its
+  near points, where the model's second order moves them). Of a beam and
+  the line that fits it, both redundant, the one with fewer points."""
+  live = np.flatnonzero(np.isfinite(a))
+  if len(live) < 3:
+    return np.zeros(0, np.int64)
+  own = np.abs(sin_el - a[beam] - b[beam] * inv_r)
+  other = np.full(len(sin_el), np.inf)
+  partner = np.zeros(len(sin_el), np.int64)
+  step = max(1, NEAREST_CHUNK // len(live))
+  for i in range(0, len(sin_el), step):
+    d = np.abs(sin_el[i:i + step, None] - a[live] - b[live] * inv_r[i:i + step, None])
+    d[beam[i:i + step, None] == live] = np.inf
+    partner[i:i + step] = live[d.argmin(1)]
+    other[i:i + step] = d.min(1)
+  order = np.argsort(beam, kind='stable')
+  bounds = np.searchsorted(beam[order], np.arange(len(a) + 1))
+  count = np.diff(bounds)
+  close = np.sin(np.deg2rad(REDUNDANT_DEG))
+  fits = {}  # redundant beam: the line that fits it
+  for j in live:
+    idx = order[bounds[j]:bounds[j + 1]]
+    if len(idx) and np.median(other[idx]) <= max(ONE_LINE_FACTOR * np.median(own[idx]), close):
+      fits[j] = np.bincount(partner[idx]).argmax()
+  return np.array([j for j, k in fits.items()
+                   if k not in fits or (count[j], -j) < (count[k], -k)], np.int64)
+
+
+def _split_wide(sin_el, inv_r, beam, n, a, b):
+  """(beam ids, count) with each beam whose points spread from its line
+  SPLIT_FACTOR times more than a typical beam's (median absolute
+  residuals) split in two, above and below its line: two beams the
+  clusters merged, which no reassignment to the nearest line parts."""
+  res = sin_el - a[beam] - b[beam] * inv_r
+  count = np.bincount(beam, minlength=n)
+  spread = np.full(n, np.nan)
+  order = np.argsort(beam, kind='stable')
+  bounds = np.searchsorted(beam[order], np.arange(n + 1))
+  for j in np.flatnonzero(count >= 2 * MIN_FIT_POINTS):
+    spread[j] = np.median(np.abs(res[order[bounds[j]:bounds[j + 1]]]))
+  if np.isnan(spread).all():
+    return beam, n
+  wide = np.flatnonzero(spread > SPLIT_FACTOR * max(np.nanmedian(spread), RESIDUAL_FLOOR))
+  beam = beam.copy()
+  for k, j in enumerate(wide):
+    beam[(beam == j) & (res > 0)] = n + k
+  return beam, n + len(wide)
+
+
 def _one_line_per_beam(sin_el, inv_r, beam, n):
   """Beam ids 0..m-1 (top first) and m after the fitted lines reassign
   every point to its nearest: beams left without a point go, and neighbours
   whose elevations (or lines, over the ranges seen) lie within
-  SAME_BEAM_DEG of each other become one."""
+  SAME_BEAM_DEG of each other, or that one line fits (:func:`_one_line`),
+  become one."""
   x_lo, x_hi = inv_r.min(), inv_r.max()
-  for _ in range(6):
+  for _ in range(REASSIGN_PASSES):
     a, b, _, _ = _fit_lines(sin_el, inv_r, beam, n)
+    beam, n_split = _split_wide(sin_el, inv_r, beam, n, a, b)
+    if n_split > n:
+      n = n_split
+      a, b, _, _ = _fit_lines(sin_el, inv_r, beam, n)
+    a[_redundant(sin_el, inv_r, beam, a, b)] = np.nan  # (its points go to the others)
     live = np.flatnonzero(np.isfinite(a))
     live = live[np.argsort(-a[live], kind='stable')]
-    # Neighbours in elevation whose lines stay within SAME_BEAM_DEG.
+    # Neighbours in elevation whose lines stay within SAME_BEAM_DEG, or
+    # whose points one line fits as well as each its own.
     tol = np.sin(np.deg2rad(SAME_BEAM_DEG))
     gap = np.minimum(np.abs(np.diff(a[live])), np.maximum(
         np.abs(np.diff(a[live]) + np.diff(b[live]) * x_lo),
         np.abs(np.diff(a[live]) + np.diff(b[live]) * x_hi)))
-    merged = np.r_[0, np.cumsum(gap > tol)]  # a new beam at each wide gap
+    apart = gap > tol
+    order = np.argsort(beam, kind='stable')
+    bounds = np.searchsorted(beam[order], np.arange(n + 1))
+    for k in np.flatnonzero(apart):
+      i, j = live[k], live[k + 1]
+      apart[k] = not _one_line(sin_el, inv_r, order[bounds[i]:bounds[i + 1]],
+                               order[bounds[j]:bounds[j + 1]], (a[i], b[i]), (a[j], b[j]))
+    merged = np.r_[0, np.cumsum(apart)]  # a new beam at each wide gap
     new_id = np.empty(n, np.int64)
     new_id[live] = merged
     before = beam
