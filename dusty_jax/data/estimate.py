@@ -15,12 +15,16 @@ lidar_origin_to_beam_origin_mm).
 The points of a beam come from the sweeps' ring field where they have one;
 else from the structure of the elevations: the points' sin(elevation),
 corrected by the geometry above (the ``v`` and ``rho`` that make the
-elevations' histogram sharpest), fall into one cluster per beam, and the
-fitted lines then reassign every point to its nearest beam (lines that meet
-become one beam). The columns come from the azimuth spacing of consecutive
-returns of one beam. What the points cannot say (the sensor's mount height,
-its exact range limits) is a default or a bound of what was seen, printed
-for review.
+elevations' histogram sharpest), fall into one cluster per beam (a spike
+of a few points, alone, is a beam that sees mostly sky), and the fitted
+lines then reassign every point to its nearest beam, pass after pass: a
+beam whose points spread far from its line splits in two, neighbours one
+line fits become one, a line whose points another fits goes (per-laser
+offsets that no common geometry corrects, as Velodyne's, make clusters
+that mix and split beams). The columns come from the azimuth spacing of
+consecutive returns of one beam. What the points cannot say (the sensor's
+mount height, its exact range limits) is a default or a bound of what was
+seen, printed for review.
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ RESIDUAL_FLOOR = np.sin(np.deg2rad(0.002))
 # A beam's offset is fitted where its ranges pin its elevation to this
 # (standard error of a, in sin(elevation)); else it follows the geometry.
 PINNED = np.sin(np.deg2rad(0.01))
-MIN_FIT_POINTS = 8         # fewer returns: the beam's median, offset from the geometry
+MIN_FIT_POINTS = 8  # fewer returns: the beam's densest group, its offset the geometry's
 # Two fitted beams closer than this (degrees) at every range are one beam
 # that the clusters split.
 SAME_BEAM_DEG = 0.5 * CLUSTER_BIN_DEG
