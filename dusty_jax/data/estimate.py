@@ -409,11 +409,13 @@ def _split_wide(sin_el, inv_r, beam, n, a, b):
 
 
 def _one_line_per_beam(sin_el, inv_r, beam, n):
-  """Beam ids 0..m-1 (top first) and m after the fitted lines reassign
-  every point to its nearest: beams left without a point go, and neighbours
-  whose elevations (or lines, over the ranges seen) lie within
-  SAME_BEAM_DEG of each other, or that one line fits (:func:`_one_line`),
-  become one."""
+  """Beam ids 0..m-1 (top first) and m after passes (REASSIGN_PASSES at
+  most, until nothing changes) in which the fitted lines reassign every
+  point to its nearest: a beam spread wide splits (:func:`_split_wide`), a
+  line another makes redundant goes (:func:`_redundant`), beams left
+  without a point go, and neighbours whose elevations (or lines, over the
+  ranges seen) lie within SAME_BEAM_DEG of each other, or that one line
+  fits (:func:`_one_line`), become one."""
   x_lo, x_hi = inv_r.min(), inv_r.max()
   for _ in range(REASSIGN_PASSES):
     a, b, _, _ = _fit_lines(sin_el, inv_r, beam, n)
