@@ -299,6 +299,7 @@ def test_convert_makes_a_run_directory(tmp_path):
     convert.main(['--pth', DATA, '--workdir', str(tmp_path / 'other')])
 
 
+@pytest.mark.slow
 def test_converted_run_with_a_dataset_serves_invert_and_evaluate(tmp_path):
   """--data_dir: the dataset's angle table, and the invert and evaluate
   command lines run on the converted run against that dataset."""

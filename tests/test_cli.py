@@ -226,6 +226,7 @@ def _training(tmp_path, workdir, *extra, prefix=()):
     proc.stderr.close()
 
 
+@pytest.mark.slow
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
   """The step, the checkpoint a rerun resumes from; no traceback."""
   workdir = tmp_path / 'w'
@@ -259,6 +260,7 @@ def _can_mount_tmpfs():
 
 @pytest.mark.skipif(not _can_mount_tmpfs(), reason='needs unshare and tmpfs mounts '
                     '(root or user namespaces) to fill a disk')
+@pytest.mark.slow
 def test_full_disk_during_a_checkpoint_is_one_line(tmp_path):
   """A 2 MB disk holds two checkpoints of the smoke run; writing the
   third fails. One line: which checkpoint, which are intact, what to do."""

@@ -245,6 +245,7 @@ def test_prepare_records_each_split_it_leaves(tmp_path, kitti):
 # ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_split_changed_in_place_mid_run_stops_before_the_next_checkpoint(
     tmp_path, tiny, monkeypatch):
   """The issue's first row: np.save of another shape to the same path while
@@ -283,6 +284,7 @@ def test_a_split_changed_in_place_mid_run_stops_before_the_next_checkpoint(
   assert _saved(workdir) == [2, 4] and not os.path.exists(cut)
 
 
+@pytest.mark.slow
 def test_a_split_truncated_mid_run_stops_in_one_line(tmp_path, tiny, monkeypatch):
   """The default reading (into memory) trains on what it read; the file cut
   short is seen at the next log step, and a rerun names both sizes."""
@@ -303,6 +305,7 @@ def test_a_split_truncated_mid_run_stops_in_one_line(tmp_path, tiny, monkeypatch
     trainer.train_and_evaluate(_config(data_dir), workdir, log=lambda m: None)
 
 
+@pytest.mark.slow
 def test_a_resume_onto_other_data_is_refused_unless_allowed(tmp_path, tiny):
   data_dir, workdir = tmp_path / 'data', str(tmp_path / 'w')
   path, depth = _prepared(data_dir, tiny)
@@ -362,6 +365,7 @@ def test_a_split_other_than_meta_json_records_is_named_and_used(tmp_path, tiny):
   np.testing.assert_array_equal(data.depth, depth[::-1])
 
 
+@pytest.mark.slow
 def test_a_split_read_from_its_file_cut_short_mid_run_is_one_line_not_a_bus_error(tmp_path):
   """The issue's bus error: the command line, reading the split from its file
   (data.memory_mb=0, as for a split too big for memory), its file truncated

@@ -94,6 +94,7 @@ def test_ring_depth_rate_teaches_drops_by_depth_within_a_ring():
     assert (np.asarray(bins) == want).all(), (d, np.unique(bins))
 
 
+@pytest.mark.slow
 def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
   _, setup, state = _setup(ring_keep=np.linspace(0.3, 0.9, 16), rate_weight=1.0,
                            rate_head_only=True, ring_bias=True)
@@ -117,6 +118,7 @@ def test_rate_head_only_trains_the_head_and_leaves_the_trunk():
     assert (trunk == 0.0) if detached else (trunk > 0.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('model', ['dusty1', 'dusty2'])
 def test_mask_detached_keeps_every_mask_gradient_off_the_trunk(model):
   kw = dict(ring_keep=np.linspace(0.3, 0.9, 16), ring_bias=True, mask_bias=1.0)
@@ -285,6 +287,7 @@ def test_only_the_ring_bias_changes_the_architecture():
   assert 'drops' in configs.architecture_diff(a, b)
 
 
+@pytest.mark.slow
 def test_the_dip_term_fills_the_generated_dips():
   """One G step with dip_weight weighted to dominate fills the dips among
   the generated returns, where the same step without it does not."""

@@ -28,6 +28,7 @@ def trained(smoke_run, tmp_path_factory):
   return run
 
 
+@pytest.mark.slow
 def test_train_command_writes_an_encoder_that_loads_and_resumes(trained, capsys):
   from dusty_jax.tools import train_encoder
   params, _ = dusty_jax.load_checkpoint(trained)
@@ -51,6 +52,7 @@ def test_train_command_writes_an_encoder_that_loads_and_resumes(trained, capsys)
     train_encoder.train(trained, encoder_trainer.TrainOptions(steps=5, batch=4))
 
 
+@pytest.mark.slow
 def test_the_encoder_answers_on_the_sphere(trained):
   params, _ = dusty_jax.load_checkpoint(trained)
   scans = sampling.sample(params, jax.random.key(1), 5)['scan']
@@ -60,6 +62,7 @@ def test_the_encoder_answers_on_the_sphere(trained):
                              np.sqrt(params.latent_dim), rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_zero_steps_is_the_encoders_forward_pass(trained):
   params, _ = dusty_jax.load_checkpoint(trained)
   scans = np.array(sampling.sample(params, jax.random.key(2), 3)['scan'])
@@ -99,6 +102,7 @@ def test_corrupt_one_gives_one_of_the_corruptions(kitti):
   assert seen == {'none or noise', 'beams', 'drop'}
 
 
+@pytest.mark.slow
 def test_loss_terms_match_their_definition(trained):
   params, _ = dusty_jax.load_checkpoint(trained)
   opts = encoder_trainer.TrainOptions(w_latent=2.0, w_rec=0.5)
@@ -126,6 +130,7 @@ def test_loss_terms_match_their_definition(trained):
   np.testing.assert_allclose(float(got), want, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):
   """Format 2 round trip; format 1 (no encoder) loads; a file from before
   format 1 (flat fields, the research era's) is one line naming the last
@@ -157,6 +162,7 @@ def test_export_round_trip_and_format_1_files_still_load(trained, tmp_path):
   np.testing.assert_array_equal(old.angles, back.angles)
 
 
+@pytest.mark.slow
 def test_a_second_encoder_training_on_one_folder_is_refused(trained):
   """Two encoder trainings on one run would write each other's checkpoints:
   the second is refused, naming the holder, and the folder is left as it was."""
@@ -171,6 +177,7 @@ def test_a_second_encoder_training_on_one_folder_is_refused(trained):
   assert sorted(os.listdir(folder)) == before
 
 
+@pytest.mark.slow
 def test_a_resumed_encoder_training_clears_a_save_cut_short(trained):
   """A save cut short (a kill) leaves orbax's tmp folder; the next training
   on the run, which holds the folder alone, removes it and resumes."""
@@ -183,6 +190,7 @@ def test_a_resumed_encoder_training_clears_a_save_cut_short(trained):
   assert sorted(os.listdir(folder)) == ['3']
 
 
+@pytest.mark.slow
 def test_bad_inputs_get_clear_errors(smoke_run, trained, tmp_path):
   plain, _ = dusty_jax.load_checkpoint(smoke_run[1])
   scan = np.asarray(sampling.sample(plain, jax.random.key(0), 1)['scan'][0])

@@ -98,6 +98,7 @@ def test_provenance_records_the_definition(tiny):
   json.dumps(rec)
 
 
+@pytest.mark.slow
 def test_evaluate_cli(smoke_run, tmp_path):
   _, workdir, _ = smoke_run
   env = dict(os.environ)

@@ -64,6 +64,7 @@ def test_copied_run_loads_without_trainer_or_data(smoke_run, tmp_path):
   assert not (tmp_path / 'home').exists()
 
 
+@pytest.mark.slow
 def test_load_equals_the_trainer_state(smoke_run):
   """The generator read alone equals the one in the full train state, for
   the EMA and the raw generator, at the latest and an earlier step."""
@@ -81,6 +82,7 @@ def test_load_equals_the_trainer_state(smoke_run):
   assert params.tolerance == config.tolerance
 
 
+@pytest.mark.slow
 def test_run_from_before_generator_json(smoke_run, tmp_path):
   """Runs written before generator.json are described by config.json; a run
   without its angle table says how to give one instead of guessing."""
@@ -117,6 +119,7 @@ def test_exported_file_loads_like_the_run(smoke_run, tmp_path):
   np.testing.assert_array_equal(np.asarray(a['scan']), np.asarray(b['scan']))
 
 
+@pytest.mark.slow
 def test_tolerance_survives_resume(smoke_run, tmp_path):
   """A tuned beta recorded in the run is what loading decodes with, and a
   resumed training keeps it."""
@@ -197,6 +200,7 @@ def test_public_names_survive_importing_every_submodule():
   assert inspect.isclass(dusty_jax.GeneratorParams)
 
 
+@pytest.mark.slow
 def test_generator_files_alone_and_what_is_refused(smoke_run, tmp_path):
   """generator.json + angles.npy + checkpoints/ are enough (config None); a
   newer format, an unknown item, and tools given the wrong kind of file fail

@@ -82,6 +82,7 @@ def test_edge_cases(gen):
     inversion.invert(gen, jnp.zeros((4, 8)))
 
 
+@pytest.mark.slow
 def test_all_models_invert(tiny, tmp_path):
   from dusty_jax import trainer
   from train_helpers import tiny_config
@@ -115,6 +116,7 @@ def test_corruptions(tiny):
       corrupt.parse(bad)
 
 
+@pytest.mark.slow
 def test_cli_on_files_and_split(smoke_run, tmp_path):
   from dusty_jax.data import kitti, scan_files, simulated_lidar
   config, workdir, _ = smoke_run

@@ -178,6 +178,7 @@ def test_calibrate_fits_each_cell_of_the_inversions(model, ring_bias):
     levels.calibrate(params, depth[..., :32], z)
 
 
+@pytest.mark.slow
 def test_fit_levels_matches_the_inversions_it_fits_to():
   """evaluation.fit_levels, round trip: invert the same scans with the
   leveled generator, and each fitted cell keeps what the scans keep there
@@ -200,6 +201,7 @@ def test_fit_levels_matches_the_inversions_it_fits_to():
     evaluation.fit_levels(params, depth[:0])
 
 
+@pytest.mark.slow
 def test_a_run_applies_its_levels_at_their_step_only(smoke_run, tmp_path):
   _, workdir, _ = smoke_run
   run = str(tmp_path / 'run')
@@ -227,6 +229,7 @@ def test_a_run_applies_its_levels_at_their_step_only(smoke_run, tmp_path):
     generator.load(run, log=lambda m: None)
 
 
+@pytest.mark.slow
 def test_training_with_depth_levels_ends_with_them_fitted(tmp_path):
   config = tiny_config(num_steps=2, checkpoint_every=2, log_every=1, image_every=2)
   config.data.cache = str(tmp_path / 'cache')
@@ -245,6 +248,7 @@ def test_training_with_depth_levels_ends_with_them_fitted(tmp_path):
   assert 'depth_levels' not in ema['params'] and 'ring_bias' not in ema['params']
 
 
+@pytest.mark.slow
 def test_a_run_started_from_a_leveled_model_keeps_its_levels_apart(tmp_path):
   """trainer.init_run (convert, the study's --from-pretrained): the levels go
   to the run's levels file at step 0, the checkpoint holds the weights."""

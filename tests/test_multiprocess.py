@@ -23,6 +23,9 @@ import pytest
 from dusty_jax import checkpoint, levels, parallel
 from conftest import FAST_COMPILE
 
+# Trainings of several processes (minutes on 2 cores): the slow set.
+pytestmark = pytest.mark.slow
+
 HERE = os.path.dirname(__file__)
 SMOKE = os.path.join(HERE, '..', 'experiments', 'smoke.py')
 # Few steps, a checkpoint every 2, no pictures but the last.

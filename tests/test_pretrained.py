@@ -52,6 +52,7 @@ AUC_BOUND = 0.75
 WITHIN_RING_BOUND = 0.51
 
 
+@pytest.mark.slow
 def test_trained_dusty1_fits_and_completes_a_held_out_simulated_scan():
   """The shipped DUSty-I, trained on simulated scenes, inverts a scene it
   never saw (scene seed outside every split of the study's data)."""
@@ -69,6 +70,7 @@ def test_trained_dusty1_fits_and_completes_a_held_out_simulated_scan():
   assert g['completion']['abs_rel'] < COMPLETION_ABS_REL_BOUND
 
 
+@pytest.mark.slow
 def test_shipped_sim_dusty1_keeps_and_places_its_drops():
   """sim-dusty1 is DUSty-I trained as the authors' code trains (the main
   command, experiments/synthetic.py), then its drop levels fitted per (ring,
@@ -121,6 +123,7 @@ def test_shipped_sim_dusty1_keeps_and_places_its_drops():
   assert scores['auc_near_within_ring'] > WITHIN_RING_BOUND, scores['auc_near_within_ring']
 
 
+@pytest.mark.slow
 def test_shipped_sim_dusty2_keeps_and_places_its_drops():
   """sim-dusty2 is DUSty-II trained with the same dips variant, its drop
   levels fitted per (ring, depth) cell after training: it drops about as

@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 from PIL import Image
+import pytest
 
 from conftest import FAST_COMPILE
 
@@ -34,6 +35,7 @@ def test_the_example_block_is_found_and_shows_every_step():
     assert call in code, call
 
 
+@pytest.mark.slow
 def test_the_readme_example_runs(tmp_path):
   code, n = re.subn(r'num_steps=\d+', 'num_steps=3', example())
   assert n == 2  # the search from a random start and the one from the encoder
@@ -60,6 +62,7 @@ def own_lidar_block() -> str:
   return found.group(1)
 
 
+@pytest.mark.slow
 def test_the_own_lidar_commands_run(tmp_path):
   """The spec file, the prepare command and both trainings run as written,
   with the smoke networks and two steps (the only changes); the run records

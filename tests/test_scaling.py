@@ -18,6 +18,9 @@ BENCHMARKS = os.path.join(os.path.dirname(__file__), '..', 'benchmarks')
 sys.path.insert(0, BENCHMARKS)  # the benchmarks import their siblings by bare name
 import scaling  # noqa: E402
 
+# A whole pipeline run in the module fixture (72 s on 2 cores): the slow set.
+pytestmark = pytest.mark.slow
+
 SIZES = ('c4-16_z16', 'c8-32_z32')
 LENGTH_RUN = 'vlp16:64/c4-16_z16/0'
 

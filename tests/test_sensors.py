@@ -311,6 +311,7 @@ def test_prepare_a_folder_of_files_with_a_preset_and_estimated(tmp_path):
 # 128 rings here; 16 rings: test_readme's own-lidar commands train on
 # simulated scans of a 16-beam spec file; 64: every other training test; 32:
 # the networks' shapes below.
+@pytest.mark.slow
 @pytest.mark.parametrize('preset', ['os1-128'])
 def test_smoke_training_and_evaluation_on_simulated_scans_of_a_preset(tmp_path, preset):
   from dusty_jax import trainer

@@ -292,6 +292,7 @@ def test_synthesize_tool(tmp_path, capsys):
     synthesize.main(['--num', '0', '--out', out])
 
 
+@pytest.mark.slow
 def test_spawned_workers_import_no_main_module(tiny, tmp_path):
   """With JAX loaded the workers are spawned; they import simulated_lidar,
   not the caller's main module (a trainer's, with JAX; or one read from

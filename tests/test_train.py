@@ -40,6 +40,7 @@ def one_device_params():
   return run_steps(2, devices=jax.devices()[:1])
 
 
+@pytest.mark.slow
 def test_one_and_four_devices_agree(one_device_params):
   four = run_steps(2, devices=jax.devices())
   assert_same_training(one_device_params, four)
@@ -50,6 +51,7 @@ def test_one_and_four_devices_agree(one_device_params):
   assert max(moved) > 1e-3
 
 
+@pytest.mark.slow
 def test_rate_terms_are_the_global_batch_s_on_four_devices():
   # The drops terms' tallies are summed over the devices, so one and four
   # devices train the same. Each device's share of the reals drops at its
@@ -149,6 +151,7 @@ def _run_two_processes(out):
   return [p.returncode for p in procs], logs
 
 
+@pytest.mark.slow
 def test_two_processes_agree_with_one(one_device_params, tmp_path):
   out = str(tmp_path / 'params.npz')
   codes, logs = _run_two_processes(out)
@@ -164,6 +167,7 @@ def test_two_processes_agree_with_one(one_device_params, tmp_path):
   assert_same_training([got[f'arr_{i}'] for i in range(len(want))], want)
 
 
+@pytest.mark.slow
 def test_resume_is_exact(smoke_run, tmp_path):
   config, workdir, final = smoke_run
   # A run stopped at step 2 and resumed reaches step 4 with the same params;
@@ -204,6 +208,7 @@ def test_run_outputs(smoke_run):
     assert expected <= set(logged)
 
 
+@pytest.mark.slow
 def test_checkpoints_by_wall_time(smoke_run, tmp_path):
   """checkpoint_minutes saves when that long has passed since the last save,
   whatever checkpoint_every says (a tiny value: every step); smoke_run's
@@ -242,6 +247,7 @@ def test_load_checkpoint_and_sample(smoke_run):
   np.testing.assert_array_equal(out['scan'], again['scan'])
 
 
+@pytest.mark.slow
 def test_nan_stops_training_keeping_last_good_checkpoint(smoke_run, tmp_path):
   config, workdir, _ = smoke_run
   config = config.copy_and_resolve_references()
@@ -257,6 +263,7 @@ def test_nan_stops_training_keeping_last_good_checkpoint(smoke_run, tmp_path):
   assert sorted(os.listdir(os.path.join(other, 'checkpoints'))) == ['2']
 
 
+@pytest.mark.slow
 def test_keep_every_keeps_the_multiples_beside_the_last(smoke_run, tmp_path):
   config, _, _ = smoke_run
   config = config.copy_and_resolve_references()
@@ -274,6 +281,7 @@ def test_missing_dataset_message(tmp_path):
     trainer.train_and_evaluate(config, str(tmp_path / 'w'), log=lambda m: None)
 
 
+@pytest.mark.slow
 def test_cli_trains_with_overrides(tmp_path):
   """The command line trains with --config.FIELD overrides (its bad fields
   and missing data: test_cli.py's table)."""
@@ -290,6 +298,7 @@ def test_cli_trains_with_overrides(tmp_path):
   assert json.load(open(tmp_path / 'w' / 'config.json'))['num_steps'] == 2
 
 
+@pytest.mark.slow
 def test_ema_rampup_follows_generator_early():
   """With the ramp-up, after one step of 8 images the half-life is 0.4
   images: the EMA equals the generator; without it, it stays near the init."""
@@ -340,6 +349,7 @@ def test_cli_config_error_is_one_line(tmp_path):
   assert not (tmp_path / 'w').exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('damage', ['truncate', 'metadata', 'empty'])
 def test_damaged_latest_checkpoint_falls_back(smoke_run, tmp_path, damage):
   config, workdir, _ = smoke_run
@@ -395,6 +405,7 @@ print('--- end', file=sys.stderr, flush=True)
 '''
 
 
+@pytest.mark.slow
 def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, tmp_path):
   """Per skipped step one warning with a reason a person can
   act on, then the step loaded, and nothing else on stderr (no asyncio or
@@ -471,6 +482,7 @@ def test_a_save_without_room_is_refused_before_orbax_writes(tmp_path, monkeypatc
   assert checkpoint.saved_steps(str(tmp_path / 'run')) == [1, 2]
 
 
+@pytest.mark.slow
 def test_nan_before_any_checkpoint_says_a_rerun_starts_afresh(smoke_run, tmp_path):
   """No checkpoint exists yet, so none is 'kept'."""
   config, _, _ = smoke_run
@@ -530,6 +542,7 @@ def test_a_training_ends_with_its_short_evaluation(smoke_run):
   assert "keep rate per ring" in text
 
 
+@pytest.mark.slow
 def test_the_steps_after_training_run_as_the_config_lists_them(smoke_run, tmp_path,
                                                                monkeypatch):
   """config.after_training names the steps after the last one, in order,

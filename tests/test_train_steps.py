@@ -98,6 +98,7 @@ def test_lazy_r1_is_off_between_its_steps():
   assert diff > 1e-6
 
 
+@pytest.mark.slow
 def test_g_step_through_the_vjp_equals_a_fresh_gradient():
   """g_step reuses the forward pass through its VJP; the update must equal
   Adam on the gradient of the non-saturating loss computed from scratch."""
@@ -145,6 +146,7 @@ def test_ema_update_and_decay():
         0.5 ** (b / halflife), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_g_step_with_drops_terms_adds_them_to_the_gradient_not_the_loss():
   """With sim-dusty2's options ('dips'), G's update is Adam on the gradient
   of the adversarial loss plus drops.add_penalties, taken through the
