@@ -143,6 +143,7 @@ def test_restore_keeps_known_returns_and_fills_the_rest(params):
                                 else batch['depth'][0])
 
 
+@pytest.mark.slow  # compiles the inversion's search
 def test_restore_by_inversion_gives_measurability_and_a_scan(params):
   depth = np.asarray(simulated_lidar.render_scan(6, params.sensor).depth)
   known = np.random.default_rng(0).uniform(size=depth.shape) > 0.5
@@ -231,6 +232,7 @@ def test_restore_cli_scores_each_method_beside_linear(tmp_path, capsys, params):
   assert 'x linear' in capsys.readouterr().out
 
 
+@pytest.mark.slow  # compiles the inversion's search
 def test_the_invert_tool_shows_linear_beside_inversion(params):
   depth = np.stack([simulated_lidar.render_scan(s, params.sensor).depth for s in (3, 4)])
   rec = evaluation.restoration(params, depth, corruption='drop:0.9', num_steps=2)
