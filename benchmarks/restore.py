@@ -1,13 +1,13 @@
 """Restoration: every method against every corruption, error against time.
 
     python benchmarks/restore.py [--model sim-dusty1] [--split test] [--num 32]
-        [--methods nearest,linear,morphological,learned,inversion] [--out benchmarks/results]
+        [--methods nearest,linear,morphological,inversion] [--out benchmarks/results]
 
 Corrupts held-out simulated HDL-64E scans (the main command's cached data,
 split --split) and, where ../shared/data/kitti-sample holds them, the real
 KITTI scans (64 x 256 as the authors subsample them), then fills the removed
-pixels with each method of ``dusty_jax.restore``: the classical baselines,
-the learned fill and the paper's GAN inversion (300 iterations). Scores the
+pixels with each method of ``dusty_jax.restore``: the classical baselines
+and the paper's GAN inversion (300 iterations). Scores the
 removed returns (evaluation.fill: AbsRel, MAE, the same on depth edges,
 Chamfer) and times one scan at a time (median; the call that compiles not
 counted). Writes restore.json and restore.png (AbsRel against seconds per
@@ -21,6 +21,7 @@ figures are (beside_table3).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 
@@ -30,7 +31,7 @@ import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CORRUPTIONS = ('beams:2', 'beams:4', 'beams:8', 'drop:0.5', 'drop:0.9')
-METHODS = ('nearest', 'linear', 'morphological', 'learned', 'inversion')
+METHODS = ('nearest', 'linear', 'morphological', 'inversion')
 KITTI_SAMPLE = os.path.join(HERE, '..', '..', 'shared', 'data', 'kitti-sample')
 
 
@@ -46,6 +47,8 @@ def parse_args(argv=None):
   p.add_argument('--cross_sensor', type=int, default=16,
                  help='simulated scene pairs, VLP-16 upsampled to HDL-64E (0: none)')
   p.add_argument('--out', default=os.path.join(HERE, 'results'))
+  p.add_argument('--replot', action='store_true',
+                 help="redraw the pictures from --out's restore.json; measure nothing")
   return p.parse_args(argv)
 
 
@@ -138,29 +141,32 @@ def beside_table3(num: int = 64, seed: int = 7) -> dict:
 
 
 def plot(results, path):
+  """AbsRel (dots; crosses: on edges) against seconds per scan, a panel
+  per data and corruption, a colour per method."""
   plt = common.pyplot()
-  specs = sorted({r['corrupt'] for r in results})
-  names = sorted({r['data'] for r in results})
-  fig, axes = plt.subplots(len(names), len(specs), figsize=(3.2 * len(specs), 3 * len(names)),
-                           squeeze=False, layout='constrained')
+  panels = list(dict.fromkeys((r['data'], r['corrupt']) for r in results))
+  cols = min(len(panels), 5)
+  rows = -(-len(panels) // cols)
+  fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3 * rows), squeeze=False,
+                           layout='constrained')
   colours = dict(zip(METHODS, plt.cm.tab10.colors))
-  for i, name in enumerate(names):
-    for j, spec in enumerate(specs):
-      ax = axes[i, j]
-      for r in results:
-        if r['data'] == name and r['corrupt'] == spec:
-          ax.scatter(r['seconds_per_scan'], r['mean']['abs_rel'], color=colours[r['method']],
-                     label=r['method'], s=30)
-          ax.scatter(r['seconds_per_scan'], r['mean']['edge_abs_rel'], marker='x',
-                     color=colours[r['method']], s=30)
-      ax.set_xscale('log')
-      ax.set_yscale('log')
-      ax.set_title(f'{name}: {spec}', fontsize=9)
-      ax.set_xlabel('seconds per scan')
-      if j == 0:
-        ax.set_ylabel('AbsRel on removed returns (x: edges)')
+  for ax in axes.ravel()[len(panels):]:
+    ax.axis('off')
+  for ax, (name, spec) in zip(axes.ravel(), panels):
+    for r in results:
+      if (r['data'], r['corrupt']) == (name, spec):
+        ax.scatter(r['seconds_per_scan'], r['mean']['abs_rel'], color=colours[r['method']],
+                   label=r['method'], s=30)
+        ax.scatter(r['seconds_per_scan'], r['mean']['edge_abs_rel'], marker='x',
+                   color=colours[r['method']], s=30)
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_title(f'{name}: {spec}', fontsize=9)
+    ax.set_xlabel('seconds per scan (log)', fontsize=8)
+    ax.set_ylabel('AbsRel, removed returns (x: edges)', fontsize=8)
   axes[0, 0].legend(fontsize=7)
-  fig.savefig(path, dpi=100)
+  fig.suptitle('Restoration: error against time per scan (lower left is better)', fontsize=10)
+  fig.savefig(path, dpi=90)
 
 
 def kitti_picture(params, depth, methods, path):
@@ -191,6 +197,8 @@ def kitti_picture(params, depth, methods, path):
     for ax in (ax_d, ax_e):
       ax.set_xticks([])
       ax.set_yticks([])
+    if err is None:
+      ax_e.axis('off')
   fig.colorbar(im_d, ax=axes[:, 0], label='range (m); white: no return', shrink=0.5)
   fig.colorbar(im_e, ax=axes[:, 1], label='|error| / range', shrink=0.5)
   fig.savefig(path, dpi=90)
@@ -229,12 +237,17 @@ def vlp16_picture(params, methods, path):
 def main(argv=None):
   a = parse_args(argv)
   sys.path.insert(0, os.path.join(HERE, '..'))
-  info = common.print_banner()
+  common.print_banner()
   import dusty_jax
   from dusty_jax import evaluation
   params = dusty_jax.load_pretrained(a.model) if a.model in dusty_jax.pretrained.available() \
       else dusty_jax.load_checkpoint(a.model)[0]
+  if a.replot:
+    with open(os.path.join(a.out, 'restore.json')) as f:
+      record = json.load(f)
+    return pictures(params, record['results'], a.methods.split(','), a.out)
   methods, specs = a.methods.split(','), a.corruptions.split(',')
+  methods = ['linear'] + [m for m in methods if m != 'linear']  # the baseline first
   data = datasets(params, a.split, a.num)
   results = []
   print(f'{"data":16} {"corruption":10} {"method":14} {"AbsRel":>7} {"x linear":>8} '
@@ -269,17 +282,20 @@ def main(argv=None):
   table3 = beside_table3()
   os.makedirs(a.out, exist_ok=True)
   common.write_json(os.path.join(a.out, 'restore.json'),
-                    {'machine': info, 'model': a.model, 'split': a.split,
+                    {'model': a.model, 'split': a.split,
                      'results': [{k: v for k, v in r.items() if k != 'per_scan'}
                                  for r in results],
                      'linear_beside_table3': table3})
-  plot(results, os.path.join(a.out, 'restore.png'))
+  pictures(params, results, methods, a.out)
+
+
+def pictures(params, results, methods, out):
+  plot(results, os.path.join(out, 'restore.png'))
   vlp16_picture(params, [m for m in methods if m != 'inversion'],
-                os.path.join(a.out, 'restore_vlp16.png'))
-  if 'real KITTI' in data:
-    kitti_picture(params, data['real KITTI'][0], [m for m in methods if m != 'inversion']
-                  + ['inversion'] * ('inversion' in methods),
-                  os.path.join(a.out, 'restore_kitti.png'))
+                os.path.join(out, 'restore_vlp16.png'))
+  if os.path.isdir(KITTI_SAMPLE):
+    depth = datasets(params, 'test', 0)['real KITTI'][0]
+    kitti_picture(params, depth, methods, os.path.join(out, 'restore_kitti.png'))
 
 
 if __name__ == '__main__':

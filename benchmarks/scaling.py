@@ -560,6 +560,19 @@ def label_points(ax, points):
     taken.append(best[2])
 
 
+def linear_baselines(corruption: str) -> dict:
+  """{sensor: linear interpolation's AbsRel against the clean scan} of the
+  same test scans and corruption (benchmarks/restore.py's beside_table3,
+  from results/restore.json); {} where it was not measured."""
+  path = os.path.join(HERE, 'results', 'restore.json')
+  if not os.path.isfile(path):
+    return {}
+  with open(path) as f:
+    table = json.load(f).get('linear_beside_table3', {})
+  return {s: v['abs_rel_vs_clean_scan'][corruption] for s, v in table.items()
+          if corruption in v['abs_rel_vs_clean_scan']}
+
+
 def picture(results: dict, length: list, length_run: str, path: str):
   """Quality against step time, a line per sensor (a panel per PANELS
   figure; bars: the seeds' range), and the length run's figures against its
@@ -580,6 +593,12 @@ def picture(results: dict, length: list, length_run: str, path: str):
       x, y, lo, hi, names = map(np.asarray, zip(*pts))
       line = ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt='o-', capsize=3, label=sensor)
       points += [(xi, yi, n, line[0].get_color()) for xi, yi, n in zip(x, y, names)]
+    if section == 'restoration':  # linear interpolation of the same scans (restore.py)
+      for sensor, linear in linear_baselines(name).items():
+        if sensor in by_sensor:
+          ax.axhline(scale * linear, ls=':', color='grey')
+          ax.annotate(f'linear interpolation, {sensor}', (1, scale * linear), fontsize=7,
+                      xycoords=('axes fraction', 'data'), ha='right', va='bottom', color='grey')
     ax.set_xscale('log')
     labels.append((ax, points))
     ax.xaxis.set_minor_formatter(plt.NullFormatter())  # minor labels overlap past a decade

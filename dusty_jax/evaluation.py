@@ -183,7 +183,7 @@ def fill(params: GeneratorParams, depth, *, corruption: str, method: str, seed: 
       params, np.where(known[i], depth[i], 0.0), known[i], method=method,
       key=jax.random.fold_in(k_search, i), num_steps=num_steps)
   if len(depth):
-    run(0)  # compiles (inversion, learned): not timed
+    run(0)  # compiles (inversion): not timed
   filled, seconds = [], []
   for i in tqdm.trange(len(depth), desc=f'{method} {corruption}', file=sys.stderr,
                        disable=not progress):
