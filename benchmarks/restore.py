@@ -1,13 +1,13 @@
 """Restoration: every method against every corruption, error against time.
 
     python benchmarks/restore.py [--model sim-dusty1] [--split test] [--num 32]
-        [--methods nearest,linear,morphological,inversion] [--out benchmarks/results]
+        [--methods nearest,linear,morphological,learned,inversion] [--out benchmarks/results]
 
 Corrupts held-out simulated HDL-64E scans (the main command's cached data,
 split --split) and, where ../shared/data/kitti-sample holds them, the real
 KITTI scans (64 x 256 as the authors subsample them), then fills the removed
-pixels with each method of ``dusty_jax.restore``: the classical baselines
-and the paper's GAN inversion (300 iterations). Scores the
+pixels with each method of ``dusty_jax.restore``: the classical baselines,
+the learned fill (restorer.py) and the paper's GAN inversion (300 iterations). Scores the
 removed returns (evaluation.fill: AbsRel, MAE, the same on depth edges,
 Chamfer) and times one scan at a time (median; the call that compiles not
 counted). Writes restore.json and restore.png (AbsRel against seconds per
@@ -31,7 +31,7 @@ import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CORRUPTIONS = ('beams:2', 'beams:4', 'beams:8', 'drop:0.5', 'drop:0.9')
-METHODS = ('nearest', 'linear', 'morphological', 'inversion')
+METHODS = ('nearest', 'linear', 'morphological', 'learned', 'inversion')
 KITTI_SAMPLE = os.path.join(HERE, '..', '..', 'shared', 'data', 'kitti-sample')
 
 

@@ -12,9 +12,10 @@ dropped). Every method keeps the known returns and fills every other pixel:
   * ``'inversion'``: the paper's: GAN inversion of the known pixels, the
     unknown ones from x_tilde; it also gives the measurability and a
     re-rendered scan with drops;
-  * ``'auto'``: the best measured (:func:`auto_method`): today linear
-    interpolation, which every other method tried loses to
-    (benchmarks/research/restoration).
+  * ``'learned'``: a small network that picks, per pixel, among the
+    classical fills (restorer.py), shipped for the simulated HDL-64E;
+  * ``'auto'``: the best measured for the model's sensor, else linear
+    interpolation (:func:`auto_method`).
 
 What each costs and how well it fills: benchmarks/restore.py (the README's
 speed/accuracy section leads with it).
@@ -24,13 +25,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from dusty_jax import codec, errors, interpolation
+from dusty_jax import codec, errors, interpolation, restorer
 from dusty_jax.data import unfolding
 from dusty_jax.generator import GeneratorParams
 from dusty_jax.sensor import SensorSpec
 
 CLASSICAL = tuple(interpolation.FILLS)
-METHODS = CLASSICAL + ('inversion', 'auto')
+METHODS = CLASSICAL + ('learned', 'inversion', 'auto')
 INVERSION_STEPS = 300  # iterations of 'inversion' (the paper: 1000)
 
 
@@ -116,6 +117,8 @@ def restore(params: GeneratorParams, depth, known=None, *, method: str = 'auto',
     fill = interpolation.FILLS[method]
     filled = np.stack([fill(d, k, sensor.min_depth, sensor.max_depth)
                        for d, k in zip(depth, known)])
+  elif method == 'learned':
+    filled = restorer.fill(learned_for(params), np.where(returns, depth, 0.0), known, sensor)
   else:
     out.update(_inversion(params, depth, known, returns, key, num_steps))
     filled = out.pop('filled')
@@ -123,12 +126,24 @@ def restore(params: GeneratorParams, depth, known=None, *, method: str = 'auto',
   return {k: (v[0] if single and k != 'method' else v) for k, v in out.items()}
 
 
+def learned_for(params: GeneratorParams) -> str:
+  """The shipped restorer of the model's sensor (its path), or one
+  InputError saying which sensors have one."""
+  path = restorer.shipped_for(params.sensor)
+  if path is None:
+    raise errors.InputError(
+        f"method='learned': no restorer ships for sensor {params.sensor.name!r} "
+        f'{params.sensor.shape} (one ships for the simulated HDL-64E, sensor \'kitti\'); '
+        "use 'linear', or train one (benchmarks/research/restoration/train_restorer.py)")
+  return path
+
+
 def auto_method(params: GeneratorParams) -> str:
-  """The best method measured (benchmarks/restore.py, README): linear
-  interpolation, for every sensor. No restoration tried beat it
-  (benchmarks/research/restoration)."""
-  del params
-  return 'linear'
+  """The best method measured (benchmarks/restore.py, README): the learned
+  fill where one ships for the model's sensor (it beat linear interpolation
+  on every corruption measured), else linear interpolation (which beat every
+  other method)."""
+  return 'learned' if restorer.shipped_for(params.sensor) else 'linear'
 
 
 def _inversion(params, depth, known, returns, key, num_steps):

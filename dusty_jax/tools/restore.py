@@ -34,7 +34,7 @@ from absl import flags
 
 from dusty_jax import tools
 
-METHODS = ('nearest', 'linear', 'morphological', 'inversion', 'auto')  # restoration.METHODS
+METHODS = ('nearest', 'linear', 'morphological', 'learned', 'inversion', 'auto')  # restoration.METHODS
 
 
 def main(argv=None):
