@@ -105,6 +105,8 @@ def beside_table3(num: int = 64, seed: int = 7) -> dict:
   returns): the baseline beside each of them. noise:0.01 has no pixel to
   fill: its figure is the noisy scan's own."""
   import jax
+  if os.path.join(HERE, '..') not in sys.path:  # experiments/, for study.py's call too
+    sys.path.insert(0, os.path.join(HERE, '..'))
   from experiments import synthetic
   from dusty_jax import codec, corrupt, evaluation, interpolation, sensor as sensor_lib
   from dusty_jax.data import arrays, pipeline

@@ -408,6 +408,12 @@ def report(results, trade_result, trade_model, train_seconds, a, machine, kitti_
       r_rows.append([LABELS[model], spec, f'{c["cd"] * 1e4:.2f}', f3(c['abs_rel']),
                      f3(c['rmse']), f'{100 * c["delta1"]:.1f}', f3(g['abs_rel']),
                      f3(g['mae_m']), f'{100 * v["coverage_complete"]:.1f}'])
+  # The baseline beside them: linear interpolation of the same scans and draws
+  # (restore.py's beside_table3: the first 64 test scans, seed 7, as here).
+  import restore  # a sibling script: only for this row
+  linear = restore.beside_table3(num=a.num_restore)['kitti']['abs_rel_vs_clean_scan']
+  for spec, v in linear.items():
+    r_rows.append(['linear interpolation', spec, '', f3(v), '', '', '', '', ''])
   t_rows = [[r['iterations'], f3(r['completion_abs_rel']), f3(r['completion_mae_m']),
              f3(r['fit_abs_rel']), f'{r["s_per_scan"]:.2f}'] for r in trade_result['rows']]
   first = next(iter(results.values()))
