@@ -172,46 +172,26 @@ def plot(results, path):
 
 
 def kitti_picture(params, depth, methods, path):
-  """One real scan with 3 of 4 beams removed, restored by each method: the
-  range, and the error against the real scan on the removed returns."""
+  """One real scan with 3 of 4 beams removed, restored by each method, with
+  the error on the removed returns (the restore tool's picture)."""
   from dusty_jax import codec, evaluation, restoration
-  plt = common.pyplot()
+  from dusty_jax.tools import restore as restore_tool
   sensor = params.sensor
   known = evaluation.corruption_known('beams:4', 1, sensor.shape)[0]
-  target = np.asarray(codec.valid_depth(depth, sensor)) & ~known
-  panels = [('real scan', depth, None), ('input: beams:4', np.where(known, depth, 0.0), None)]
-  for m in methods:
-    out = restoration.restore(params, np.where(known, depth, 0.0), known, method=m)['depth']
-    err = np.abs(out - depth) / np.maximum(depth, 1e-6)
-    panels.append((f'{m}: AbsRel {err[target].mean():.3f} on the removed returns', out,
-                   np.where(target, err, np.nan)))
-  fig, axes = plt.subplots(len(panels), 2, figsize=(13, 1.3 * len(panels)),
-                           layout='constrained', squeeze=False)
-  norm = plt.matplotlib.colors.LogNorm(sensor.min_depth + 1, sensor.max_depth)
-  for (title, image, err), (ax_d, ax_e) in zip(panels, axes):
-    shown = np.where(image > 0, image, np.nan)
-    im_d = ax_d.imshow(shown, cmap='turbo_r', norm=norm, interpolation='nearest', aspect='auto')
-    ax_d.set_title(title, fontsize=8)
-    if err is not None:
-      im_e = ax_e.imshow(err, cmap='magma', vmin=0, vmax=0.3, interpolation='nearest',
-                         aspect='auto')
-      ax_e.set_title('relative error on the removed returns', fontsize=8)
-    for ax in (ax_d, ax_e):
-      ax.set_xticks([])
-      ax.set_yticks([])
-    if err is None:
-      ax_e.axis('off')
-  fig.colorbar(im_d, ax=axes[:, 0], label='range (m); white: no return', shrink=0.5)
-  fig.colorbar(im_e, ax=axes[:, 1], label='|error| / range', shrink=0.5)
-  fig.savefig(path, dpi=90)
+  given = np.where(known, depth, 0.0)
+  results = {m: restoration.restore(params, given, known, method=m)['depth'] for m in methods}
+  target = {'depth': depth, 'mask': np.asarray(codec.valid_depth(depth, sensor)) & ~known}
+  restore_tool.picture(path, 'a real KITTI scan, 3 of 4 beams removed (beams:4)', given,
+                       results, target, sensor)
 
 
 def vlp16_picture(params, methods, path):
   """The real VLP-16 sweep of ../shared/data/sensors-sample placed on the
-  model's HDL-64E grid by elevation and restored by each method."""
+  model's HDL-64E grid by elevation and restored by each method (the
+  restore tool's picture)."""
   from dusty_jax import restoration, sensor as sensor_lib
   from dusty_jax.data import read_points
-  plt = common.pyplot()
+  from dusty_jax.tools import restore as restore_tool
   sample = os.path.join(os.path.dirname(KITTI_SAMPLE), 'sensors-sample', 'vlp16_ring.pcd')
   if not os.path.isfile(sample):
     return
@@ -219,21 +199,9 @@ def vlp16_picture(params, methods, path):
   source = sensor_lib.get_sensor('vlp16').with_width(target.width)
   pts = read_points(sample)
   depth, known = restoration.points_on_grid(pts, source, target, ring=pts['ring'])
-  panels = [('real VLP-16 sweep on the HDL-64E grid (9 of its 16 beams in view)', depth)]
-  for m in methods:
-    out = restoration.restore(params, depth, known, method=m)
-    panels.append((f'restored: {out["method"]}', out['depth']))
-  fig, axes = plt.subplots(len(panels), 1, figsize=(8, 1.35 * len(panels)),
-                           layout='constrained', squeeze=False)
-  norm = plt.matplotlib.colors.LogNorm(target.min_depth + 1, target.max_depth)
-  for (title, image), ax in zip(panels, axes[:, 0]):
-    im = ax.imshow(np.where(image > 0, image, np.nan), cmap='turbo_r', norm=norm,
-                   interpolation='nearest', aspect='auto')
-    ax.set_title(title, fontsize=8)
-    ax.set_xticks([])
-    ax.set_yticks([])
-  fig.colorbar(im, ax=axes[:, 0], label='range (m); white: no return', shrink=0.6)
-  fig.savefig(path, dpi=90)
+  results = {m: restoration.restore(params, depth, known, method=m)['depth'] for m in methods}
+  restore_tool.picture(path, 'a real VLP-16 sweep on the HDL-64E grid (9 of its 16 beams in '
+                       'view), restored', depth, results, None, target)
 
 
 def main(argv=None):

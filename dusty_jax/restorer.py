@@ -157,17 +157,25 @@ def load(path: str):
   return variables, Settings(**meta['settings']), meta
 
 
+@functools.lru_cache(maxsize=None)
+def _index(folder: str) -> tuple:
+  """(path, sensor as sorted JSON) of each restorer .npz in ``folder``, read
+  once per folder: restore() asks for every call."""
+  if not os.path.isdir(folder):
+    return ()
+  out = []
+  for name in sorted(os.listdir(folder)):
+    if name.endswith('.npz'):
+      with np.load(os.path.join(folder, name), allow_pickle=False) as f:
+        sensor = json.loads(str(f['meta']))['sensor']
+      out.append((os.path.join(folder, name), json.dumps(sensor, sort_keys=True)))
+  return tuple(out)
+
+
 def shipped_for(sensor: SensorSpec) -> str | None:
   """The path of a shipped restorer trained for ``sensor``, or None."""
-  if not os.path.isdir(SHIPPED):
-    return None
-  want = sensor.to_dict()
-  for name in sorted(os.listdir(SHIPPED)):
-    if name.endswith('.npz'):
-      with np.load(os.path.join(SHIPPED, name), allow_pickle=False) as f:
-        if json.loads(str(f['meta']))['sensor'] == want:
-          return os.path.join(SHIPPED, name)
-  return None
+  want = json.dumps(sensor.to_dict(), sort_keys=True)
+  return next((path for path, spec in _index(SHIPPED) if spec == want), None)
 
 
 @functools.lru_cache(maxsize=4)
