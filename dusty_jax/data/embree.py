@@ -224,11 +224,22 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, rays: Rays,
   api = _api(os.getpid())
   if api is None:
     raise RuntimeError('Embree 4 (from embreex) cannot be loaded here')
-  lib, device = api
   vertices = np.asarray(vertices, np.float64)
   faces = np.asarray(faces)
+  prim = _first_prims(api, vertices, faces, rays, candidates)
+  index_ray = np.flatnonzero(prim != _INVALID_ID)
+  index_tri = np.take(prim, index_ray).astype(np.int64)
+  if candidates is not None:
+    index_tri = np.take(candidates, index_tri)
+  normals = _hit_normals(vertices, faces, index_tri)
+  return _on_planes(vertices, faces, rays, index_tri, index_ray, normals)
 
-  # ray_pyembree._EmbreeWrap: float32 of (v - min v) * 100 / trimesh scale.
+
+def _first_prims(api, vertices, faces, rays: Rays, candidates) -> np.ndarray:
+  """(rays.n,) uint32: per ray, the index into ``faces[candidates]`` of the
+  first face it hits, or _INVALID_ID. The mesh and the rays go in as
+  ray_pyembree._EmbreeWrap gives them: float32 of (x - min vertex) * 100 /
+  trimesh's scale of the whole mesh."""
   bounds = _bounds(vertices)
   origin = bounds[0]
   scale = float(_TRIMESH_BOX / _trimesh_scale(vertices, faces, bounds))
@@ -244,7 +255,16 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, rays: Rays,
   ray_origin = ((np.zeros(3) - origin) * scale).astype(np.float32)
   for j in range(3):
     packets[:, _field(_ORG + j)] = ray_origin[j]
+  _intersect(api, vbuf, fbuf, packets, rays.valid)
+  return packets.view(np.uint32)[:, _field(_PRIM)].reshape(-1)[:rays.n]
 
+
+def _intersect(api, vbuf: np.ndarray, fbuf: np.ndarray, packets: np.ndarray,
+               valid: np.ndarray):
+  """Builds an Embree scene of one triangle geometry over the shared
+  buffers ``vbuf`` (vertices) and ``fbuf`` (faces) and intersects the ray
+  ``packets`` (their ``valid`` masks) with it, writing the hits into them."""
+  lib, device = api
   scene = lib.rtcNewScene(device)
   try:
     lib.rtcSetSceneFlags(scene, _SCENE_FLAG_ROBUST)
@@ -259,30 +279,32 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, rays: Rays,
     lib.rtcCommitScene(scene)
     error = lib.rtcGetDeviceError(device)
     if error:
-      raise RuntimeError(f'Embree failed to build a scene of {len(given)} '
+      raise RuntimeError(f'Embree failed to build a scene of {len(fbuf)} '
                          f'triangles: RTCError {error}')
     intersect16 = lib.rtcIntersect16
     base, step = packets.ctypes.data, packets.strides[0]
-    mask, mask_step = rays.valid.ctypes.data, rays.valid.strides[0]
+    mask, mask_step = valid.ctypes.data, valid.strides[0]
     for i in range(len(packets)):
       intersect16(mask + i * mask_step, scene, base + i * step, None)
   finally:
     lib.rtcReleaseScene(scene)
 
-  prim = packets.view(np.uint32)[:, _field(_PRIM)].reshape(-1)[:rays.n]
-  index_ray = np.flatnonzero(prim != _INVALID_ID)
-  index_tri = np.take(prim, index_ray).astype(np.int64)
-  if candidates is not None:
-    index_tri = np.take(candidates, index_tri)
+
+def _hit_normals(vertices, faces, index_tri) -> np.ndarray:
+  """face_normals(vertices, faces)[index_tri], computed for the faces hit."""
   hit_faces = np.flatnonzero(np.bincount(index_tri, minlength=len(faces)))
   slot = np.empty(len(faces), np.int64)
   slot[hit_faces] = np.arange(len(hit_faces))
-  normals = np.take(face_normals(vertices, np.take(faces, hit_faces, axis=0)),
-                    np.take(slot, index_tri), axis=0)
-  # ray_pyembree.intersects_id, first pass: hit points on the faces' planes
-  # by trimesh's intersections.planes_lines, its float64 operations for
-  # lines through the origin (np.take: numpy's row indexing is slower), and
-  # rays nearly parallel to their face dropped.
+  return np.take(face_normals(vertices, np.take(faces, hit_faces, axis=0)),
+                 np.take(slot, index_tri), axis=0)
+
+
+def _on_planes(vertices, faces, rays: Rays, index_tri, index_ray, normals):
+  """ray_pyembree.intersects_id's first pass: the hit points on the faces'
+  planes by trimesh's intersections.planes_lines, its float64 operations
+  for lines through the origin (np.take: numpy's row indexing is slower),
+  and rays nearly parallel to their face dropped. Returns
+  ``(index_tri, index_ray, locations, normals)`` of the hits kept."""
   directions = np.take(rays.unit, index_ray, axis=0)
   plane_origins = np.take(vertices, np.take(faces[:, 0], index_tri), axis=0)
   projection_ori = util.diagonal_dot(plane_origins, normals)

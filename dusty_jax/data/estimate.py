@@ -552,6 +552,38 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   beam with more returns per sweep than MAX_RETURNS_PER_FIRING times the
   firings (beams closer than the elevations tell apart, merged).
   """
+  xyz, rings = _as_points(sweeps, ring)
+  sources = list(sources) if sources is not None else [f'sweep {i}' for i in range(len(xyz))]
+  if len(xyz) > 1:
+    _check_one_sensor(xyz, rings, sources)
+  named = _named(sources)
+  returns = _returns(xyz, rings, named)
+  if returns.ring is not None:
+    beams, beyond = _beams_by_ring(returns), 0
+  else:
+    beams, on = _beams_by_elevation(returns, named)
+    returns, beyond = returns.where(on), int((~on).sum())
+  top_first = np.argsort(-beams.a, kind='stable')
+  a, b, rms, ids = (x[top_first] for x in (beams.a, beams.b, beams.rms, beams.ids))
+  inferred = [int(i) for i, u in enumerate(ids) if int(u) in beams.inferred_ids]
+  row_of = np.empty(len(top_first), np.int64)
+  row_of[top_first] = np.arange(len(top_first))
+  own = row_of[beams.beam]  # each return's row of the image
+  firings = _firings(returns.azimuth, own, len(a), named)
+  _check_beams(a, own, firings, len(xyz), sources)
+  spec = _spec(name, a, b, returns.r, firings, width, mount_height, named)
+  # Agreement: each point's nearest fitted beam against its own.
+  nearest = _nearest(returns.sin_el, returns.inv_r, a, b, np.arange(len(a)))
+  return Estimate(spec, points=len(returns.r), beams_measured=len(a) - len(inferred),
+                  beams_inferred=inferred, rms_deg=np.rad2deg(rms),
+                  agreement=float(np.mean(nearest == own)), firings=firings,
+                  near=returns.near, rings_left_out=beams.left_out,
+                  offsets_from_geometry=int(beams.free), beyond=beyond)
+
+
+def _as_points(sweeps, ring):
+  """(xyz, rings) per sweep: its (N, 3) float64 points and its ring ids
+  (``ring``'s, else a dict's ring field; None where it has none)."""
   xyz, rings = [], []
   sweeps = list(sweeps)
   if not sweeps:
@@ -565,84 +597,123 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
       r = None if ring is None else ring[i]
     rings.append(None if r is None else np.asarray(r))
     xyz.append(p)
-  sources = list(sources) if sources is not None else [f'sweep {i}' for i in range(len(xyz))]
-  if len(xyz) > 1:
-    _check_one_sensor(xyz, rings, sources)
-  use_ring = all(r is not None for r in rings)
+  return xyz, rings
+
+
+@dataclasses.dataclass
+class _Returns:
+  """The returns fitted (those beyond FIT_MIN_RANGE) of all the sweeps."""
+  r: np.ndarray  # range, metres
+  sin_el: np.ndarray  # sin(elevation)
+  inv_r: np.ndarray  # 1 / range
+  azimuth: np.ndarray  # radians
+  ring: np.ndarray | None  # ring ids, where every sweep has them
+  rings_seen: np.ndarray | None  # the ring ids of all returns, near ones too
+  near: int  # returns nearer than FIT_MIN_RANGE, left out
+
+  def where(self, keep) -> _Returns:
+    """The returns ``keep`` (a mask) selects."""
+    return dataclasses.replace(self, r=self.r[keep], sin_el=self.sin_el[keep],
+                               inv_r=self.inv_r[keep], azimuth=self.azimuth[keep],
+                               ring=None if self.ring is None else self.ring[keep])
+
+
+def _returns(xyz, rings, named) -> _Returns:
+  """The returns of the sweeps (points, ring ids) beyond FIT_MIN_RANGE;
+  DataError naming the sweeps (``named``) where fewer than 100 are."""
   rng = [np.linalg.norm(p, axis=1) for p in xyz]
   returned = [np.isfinite(r) & (r > 0) for r in rng]
   keep = [k & (r >= FIT_MIN_RANGE) for r, k in zip(rng, returned)]
   near = int(sum(k.sum() for k in returned) - sum(k.sum() for k in keep))
   p = np.concatenate([a[k] for a, k in zip(xyz, keep)])
   r = np.concatenate([a[k] for a, k in zip(rng, keep)])
-  named = _named(sources)
   if len(p) < 100:
     raise DataError(f'{named}: only {len(p)} returns beyond {FIT_MIN_RANGE} m to estimate '
                     f'a sensor from ({near} nearer: placeholders of beams without a '
                     'return?); a sweep has thousands')
-  sin_el, inv_r = p[:, 2] / r, 1.0 / r
-  azimuth = np.arctan2(p[:, 1], p[:, 0])
-  left_out, beyond = [], 0
-  if use_ring:
-    ids = np.concatenate([a[k] for a, k in zip(rings, keep)]).astype(np.int64)
+  ring = seen = None
+  if all(x is not None for x in rings):
+    ring = np.concatenate([a[k] for a, k in zip(rings, keep)]).astype(np.int64)
     seen = np.unique(np.concatenate([a[k] for a, k in zip(rings, returned)]))
-    uniq, beam = np.unique(ids, return_inverse=True)
-    a, b, rms, free = _fit_lines(sin_el, inv_r, beam, len(uniq))
-    # Ring ids 0..max with some never seen (or seen only nearer than
-    # FIT_MIN_RANGE): a ring without a return still is a beam; its elevation
-    # follows its neighbours' in id order where elevation is monotone in
-    # the id (it is for Velodyne, Hesai and Ouster drivers, not nuScenes').
-    full = np.arange(max(uniq.max(), seen.max()) + 1) if seen.min() >= 0 else seen
-    missing = np.setdiff1d(full, uniq)
-    if len(missing) and len(uniq) >= 2 and (
-        np.all(np.diff(a) > 0) or np.all(np.diff(a) < 0)):
-      fill = np.interp(missing, uniq, a, left=np.nan, right=np.nan)
-      out = np.isnan(fill)  # beyond the ends: extrapolate the end spacing
-      for k in np.flatnonzero(out):
-        end = 0 if missing[k] < uniq[0] else -1
-        step = (a[1] - a[0]) / (uniq[1] - uniq[0]) if end == 0 else (
-            (a[-1] - a[-2]) / (uniq[-1] - uniq[-2]))
-        fill[k] = a[end] + step * (missing[k] - uniq[end])
-      a = np.concatenate([a, fill])
-      b = np.concatenate([b, np.interp(missing, uniq, b)])  # (beyond the ends: the end's)
-      rms = np.concatenate([rms, np.full(len(missing), np.nan)])
-      inferred_ids = set(missing.tolist())
-      uniq = np.concatenate([uniq, missing])
-    else:
-      inferred_ids = set()
-      left_out = sorted(set(seen.tolist()) - set(uniq.tolist()))
-  else:
-    best = None
-    for mode in ('all', 'far'):  # all points vote, or only the far ones
-      beam, n, on = _clusters(sin_el, inv_r, mode, named)
-      beam, n = _one_line_per_beam(sin_el[on], inv_r[on], beam[on], n)
-      a, b, rms, free = _fit_lines(sin_el[on], inv_r[on], beam, n)
-      # How far every point lies from its nearest line (those not fitted too).
-      closest = _nearest(sin_el, inv_r, a, b, np.arange(n))
-      score = np.sqrt(np.mean((sin_el - a[closest] - b[closest] * inv_r) ** 2))
-      if best is None or score < best[0]:
-        best = (score, beam, n, a, b, rms, free, on)
-    _, beam, n, a, b, rms, free, on = best
-    beyond = int((~on).sum())
-    p, r, sin_el, inv_r, azimuth = p[on], r[on], sin_el[on], inv_r[on], azimuth[on]
-    uniq = np.arange(n)
-    inferred_ids = set()
-  top_first = np.argsort(-a, kind='stable')
-  a, b, rms, uniq = a[top_first], b[top_first], rms[top_first], uniq[top_first]
-  inferred = [int(i) for i, u in enumerate(uniq) if int(u) in inferred_ids]
-  # Agreement: each point's nearest fitted beam against its own.
-  row_of = np.empty(len(top_first), np.int64)
-  row_of[top_first] = np.arange(len(top_first))
-  own = row_of[beam]
-  nearest = _nearest(sin_el, inv_r, a, b, np.arange(len(a)))
-  firings = _firings(azimuth, own, len(a), named)
-  _check_beams(a, own, firings, len(xyz), sources)
+  return _Returns(r=r, sin_el=p[:, 2] / r, inv_r=1.0 / r,
+                  azimuth=np.arctan2(p[:, 1], p[:, 0]), ring=ring, rings_seen=seen,
+                  near=near)
+
+
+@dataclasses.dataclass
+class _Beams:
+  """The beams found in the returns: per beam its line sin(elevation) = a +
+  b / range, the line's RMS (of sin; NaN for a beam without a return) and
+  its id (ring id, or cluster); per return, its beam (an index into
+  them)."""
+  beam: np.ndarray
+  a: np.ndarray
+  b: np.ndarray
+  rms: np.ndarray
+  ids: np.ndarray
+  free: int  # beams whose offset follows the geometry (_fit_lines)
+  inferred_ids: set = dataclasses.field(default_factory=set)  # ids without a return
+  left_out: list = dataclasses.field(default_factory=list)  # ring ids not placed
+
+
+def _beams_by_ring(returns: _Returns) -> _Beams:
+  """One beam per ring id, a line fitted to its returns. Ring ids 0..max
+  with some never seen (or seen only nearer than FIT_MIN_RANGE): a ring
+  without a return still is a beam; its elevation follows its neighbours'
+  in id order where elevation is monotone in the id (it is for Velodyne,
+  Hesai and Ouster drivers, not nuScenes'); else it is left out."""
+  uniq, beam = np.unique(returns.ring, return_inverse=True)
+  a, b, rms, free = _fit_lines(returns.sin_el, returns.inv_r, beam, len(uniq))
+  seen = returns.rings_seen
+  full = np.arange(max(uniq.max(), seen.max()) + 1) if seen.min() >= 0 else seen
+  missing = np.setdiff1d(full, uniq)
+  if not (len(missing) and len(uniq) >= 2 and (
+      np.all(np.diff(a) > 0) or np.all(np.diff(a) < 0))):
+    return _Beams(beam, a, b, rms, uniq, free,
+                  left_out=sorted(set(seen.tolist()) - set(uniq.tolist())))
+  fill = np.interp(missing, uniq, a, left=np.nan, right=np.nan)
+  out = np.isnan(fill)  # beyond the ends: extrapolate the end spacing
+  for k in np.flatnonzero(out):
+    end = 0 if missing[k] < uniq[0] else -1
+    step = (a[1] - a[0]) / (uniq[1] - uniq[0]) if end == 0 else (
+        (a[-1] - a[-2]) / (uniq[-1] - uniq[-2]))
+    fill[k] = a[end] + step * (missing[k] - uniq[end])
+  return _Beams(beam, np.concatenate([a, fill]),
+                np.concatenate([b, np.interp(missing, uniq, b)]),  # (beyond the ends: the end's)
+                np.concatenate([rms, np.full(len(missing), np.nan)]),
+                np.concatenate([uniq, missing]), free, inferred_ids=set(missing.tolist()))
+
+
+def _beams_by_elevation(returns: _Returns, named: str):
+  """(beams, on) from the structure of the returns' elevations
+  (:func:`_clusters`, then :func:`_one_line_per_beam`), clustered twice
+  (all returns vote, or only the far ones) and the clustering whose lines
+  lie nearer to every return kept; ``on``: the returns within the
+  outermost beams, those the beams hold."""
+  sin_el, inv_r = returns.sin_el, returns.inv_r
+  best = None
+  for mode in ('all', 'far'):
+    beam, n, on = _clusters(sin_el, inv_r, mode, named)
+    beam, n = _one_line_per_beam(sin_el[on], inv_r[on], beam[on], n)
+    a, b, rms, free = _fit_lines(sin_el[on], inv_r[on], beam, n)
+    # How far every point lies from its nearest line (those not fitted too).
+    closest = _nearest(sin_el, inv_r, a, b, np.arange(n))
+    score = np.sqrt(np.mean((sin_el - a[closest] - b[closest] * inv_r) ** 2))
+    if best is None or score < best[0]:
+      best = (score, _Beams(beam, a, b, rms, np.arange(n), free), on)
+  return best[1:]
+
+
+def _spec(name, a, b, r, firings, width, mount_height, named) -> SensorSpec:
+  """The SensorSpec of beams' lines (a, b; top first), the returns' ranges
+  ``r`` and the firings per revolution; ``width`` None: the largest of
+  WIDTHS not above the firings."""
   if width is None:
     width = next((w for w in WIDTHS if w <= firings), max(16, firings // 16 * 16))
   offsets = b if np.max(np.abs(b)) >= OFFSET_MATTERS_M else ()
   elevation = np.rad2deg(np.arcsin(np.clip(a, -1, 1)))
   try:
-    spec = SensorSpec(
+    return SensorSpec(
         name, tuple(round(float(e), 5) for e in elevation), width=int(width),
         native_width=max(firings, int(width)),
         min_depth=float(max(0.05, np.floor(0.9 * r.min() * 100) / 100)),
@@ -651,8 +722,3 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
         vertical_offset_m=tuple(round(float(v), 6) for v in offsets))
   except ValueError as e:  # (what the checks above should have refused)
     raise DataError(f'{named}: could not fit a sensor spec: {e}') from None
-  return Estimate(spec, points=len(p), beams_measured=len(a) - len(inferred),
-                  beams_inferred=inferred, rms_deg=np.rad2deg(rms),
-                  agreement=float(np.mean(nearest == own)), firings=firings, near=near,
-                  rings_left_out=left_out, offsets_from_geometry=int(free),
-                  beyond=beyond)

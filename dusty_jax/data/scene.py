@@ -45,6 +45,8 @@ FOLIAGE = np.array([m.foliage for m in MATERIALS.values()])
 EGO = np.array([m.ego for m in MATERIALS.values()])
 
 SCENE_KINDS = ('urban', 'residential', 'rural')
+EXTENT = 140.0  # metres from the sensor that the ground and the roadside reach
+LANE_W = 3.5    # metres, a lane's width
 
 # --- Mesh templates ----------------------------------------------------------
 class _Template:
@@ -183,6 +185,28 @@ def kind_of(seed: int) -> str:
   return SCENE_KINDS[np.random.default_rng(seed).integers(len(SCENE_KINDS))]
 
 
+@dataclasses.dataclass(frozen=True)
+class _Road:
+  """The road along x in the sensor's frame: ``lanes`` lanes, its centre
+  line at y = -ego_y (the ego car drives in one of the lanes), on the
+  ground at z = ``ground``; where ``cross``, a cross street as wide at x =
+  ``cross_x``."""
+  lanes: int
+  ego_y: float
+  ground: float
+  cross: bool
+  cross_x: float
+
+  @property
+  def half(self) -> float:
+    """Half the road's width."""
+    return self.lanes * LANE_W / 2
+
+  def on_cross(self, x0, x1) -> bool:
+    """Whether x0..x1 reaches onto the cross street (2 m to spare)."""
+    return self.cross and x1 > self.cross_x - self.half - 2 and x0 < self.cross_x + self.half + 2
+
+
 def build_scene(seed: int, kind: str | None = None, mount_height: float = 1.73,
                 cross_street: bool | None = None):
   """(mesh, face_material, info) of one procedural scene around the origin.
@@ -194,86 +218,105 @@ def build_scene(seed: int, kind: str | None = None, mount_height: float = 1.73,
   kind = kind or SCENE_KINDS[rng.integers(len(SCENE_KINDS))]  # kind_of: this draw
   if kind not in SCENE_KINDS:
     raise ValueError(f'unknown scene kind {kind!r}; known: {SCENE_KINDS}')
-  g = -mount_height
-  extent = 140.0
   b = SceneBuilder()
+  # (The order of the parts below is the order of the generator's draws.)
+  road = _road(b, kind, -mount_height, cross_street, rng)
+  side_w = 0 if kind == 'rural' else rng.uniform(2.0, 4.0)  # sidewalks' width
+  for side in (-1, 1):
+    _roadside(b, road, kind, side, side_w, rng)
+  _traffic(b, road, kind, rng)
+  # The ego vehicle: its body lies inside the sensor's blind cone, but the
+  # roof rack behind the sensor shadows a rear sector of the lowest beams.
+  b.box((-1.2, -0.3, -0.6), (-0.5, 0.3, -0.35), 'ego')
+  mesh, material = b.mesh()
+  return mesh, material, {'kind': kind, 'cross_street': bool(road.cross),
+                          'lanes': road.lanes}
+
+
+def _road(b: SceneBuilder, kind: str, g: float, cross_street: bool | None, rng) -> _Road:
+  """Lays the ground at z = ``g``, the road with its lane markings (the ego
+  car in a random lane) and a cross street (drawn where ``cross_street``
+  is None)."""
   lanes = 2 if kind == 'rural' else int(rng.integers(2, 5))
-  lane_w = 3.5
-  half = lanes * lane_w / 2
-  ego_y = -half + lane_w / 2 + lane_w * int(rng.integers(lanes))
-  # Ground, road, markings (road frame: centre line at y = 0, ego offset).
-  b.box((-extent, -extent, g - 0.5), (extent, extent, g - 0.02), 'ground')
-  b.box((-extent, -half - ego_y, g - 0.1), (extent, half - ego_y, g), 'asphalt')
+  half = lanes * LANE_W / 2
+  ego_y = -half + LANE_W / 2 + LANE_W * int(rng.integers(lanes))
+  b.box((-EXTENT, -EXTENT, g - 0.5), (EXTENT, EXTENT, g - 0.02), 'ground')
+  b.box((-EXTENT, -half - ego_y, g - 0.1), (EXTENT, half - ego_y, g), 'asphalt')
   for k in range(1, lanes):
-    y = -half + k * lane_w - ego_y
-    xs = np.arange(-extent, extent, 9.0)
+    y = -half + k * LANE_W - ego_y
+    xs = np.arange(-EXTENT, EXTENT, 9.0)
     b.boxes(np.stack([xs, np.full_like(xs, y - 0.07), np.full_like(xs, g)], 1),
             np.stack([xs + 3.0, np.full_like(xs, y + 0.07),
                       np.full_like(xs, g + 0.005)], 1), 'marking')
   cross = cross_street if cross_street is not None else rng.uniform() < 0.35
   cross_x = rng.uniform(12, 45) * rng.choice([-1, 1])
-  cross_half = lanes * lane_w / 2
   if cross:
-    b.box((cross_x - cross_half, -extent, g - 0.1),
-          (cross_x + cross_half, extent, g), 'asphalt')
+    b.box((cross_x - half, -EXTENT, g - 0.1), (cross_x + half, EXTENT, g), 'asphalt')
+  return _Road(lanes, ego_y, g, cross, cross_x)
 
-  def on_cross(x0, x1):
-    return cross and x1 > cross_x - cross_half - 2 and x0 < cross_x + cross_half + 2
 
-  side_w = 0 if kind == 'rural' else rng.uniform(2.0, 4.0)
-  for side in (-1, 1):
-    edge = side * half - ego_y
-    if side_w:
-      for x0 in np.arange(-extent, extent, 20.0):
-        if not on_cross(x0, x0 + 20):
-          y0, y1 = sorted((edge, edge + side * side_w))
-          b.box((x0, y0, g), (x0 + 20, y1, g + 0.15), 'sidewalk')
-    facade = edge + side * (side_w + rng.uniform(0.5, 4.0))
-    x = -extent
-    while x < extent:
-      if kind == 'urban':
-        length, height = rng.uniform(15, 40), rng.uniform(8, 30)
-      elif kind == 'residential':
-        length, height = rng.uniform(8, 15), rng.uniform(4, 8)
+def _roadside(b: SceneBuilder, road: _Road, kind: str, side: int, side_w: float, rng):
+  """One side of the road (``side`` -1 or +1 in y): its sidewalk (none
+  where ``side_w`` is 0), the buildings or, rural, the walls along it,
+  then its poles, trees and parked cars."""
+  g = road.ground
+  edge = side * road.half - road.ego_y
+  if side_w:
+    for x0 in np.arange(-EXTENT, EXTENT, 20.0):
+      if not road.on_cross(x0, x0 + 20):
+        y0, y1 = sorted((edge, edge + side * side_w))
+        b.box((x0, y0, g), (x0 + 20, y1, g + 0.15), 'sidewalk')
+  facade = edge + side * (side_w + rng.uniform(0.5, 4.0))
+  _frontage(b, road, kind, side, facade, rng)
+  for x in np.arange(-EXTENT + rng.uniform(0, 15), EXTENT, rng.uniform(15, 30)):
+    if not road.on_cross(x, x):
+      y = edge + side * max(side_w - 0.4, 0.6)
+      b.add(_CYL, (0.2, 0.2, 7.0), (x, y, g + 3.5), 'metal')  # a pole
+  n_trees = {'urban': 6, 'residential': 18, 'rural': 30}[kind]
+  for _ in range(n_trees):
+    x = rng.uniform(-EXTENT, EXTENT)
+    if not road.on_cross(x, x):
+      y = edge + side * (side_w + rng.uniform(1.0, 20.0 if kind == 'rural' else 3.0))
+      _tree(b, x, y, g, rng)
+  n_parked = {'urban': 10, 'residential': 8, 'rural': 1}[kind]
+  for _ in range(n_parked):
+    x = rng.uniform(-70, 70)
+    if abs(x) > 4 and not road.on_cross(x, x):
+      _car(b, x, edge - side * 1.1, rng.uniform(-0.05, 0.05), g, rng)
+
+
+def _frontage(b: SceneBuilder, road: _Road, kind: str, side: int, facade: float, rng):
+  """Blocks along one side of the road from end to end, their fronts at y
+  = ``facade`` (residential: set back from it), with gaps between them and
+  none on the cross street: buildings with windows, or, rural, low walls
+  and fences scattered beyond it."""
+  g = road.ground
+  x = -EXTENT
+  while x < EXTENT:
+    if kind == 'urban':
+      length, height = rng.uniform(15, 40), rng.uniform(8, 30)
+    elif kind == 'residential':
+      length, height = rng.uniform(8, 15), rng.uniform(4, 8)
+    else:
+      length, height = rng.uniform(20, 60), rng.uniform(0.8, 2.0)
+    gap = rng.uniform(0, 2) if kind == 'urban' else rng.uniform(3, 12)
+    if not road.on_cross(x, x + length) and rng.uniform() < (0.95 if kind != 'rural' else 0.5):
+      if kind == 'rural':  # low walls and fences
+        y0 = facade + side * rng.uniform(0, 6)
+        b.box((x, y0 - 0.15, g), (x + length, y0 + 0.15, g + height), 'wall')
       else:
-        length, height = rng.uniform(20, 60), rng.uniform(0.8, 2.0)
-      gap = rng.uniform(0, 2) if kind == 'urban' else rng.uniform(3, 12)
-      if not on_cross(x, x + length) and rng.uniform() < (0.95 if kind != 'rural' else 0.5):
-        if kind == 'rural':  # low walls and fences
-          y0 = facade + side * rng.uniform(0, 6)
-          b.box((x, y0 - 0.15, g), (x + length, y0 + 0.15, g + height), 'wall')
-        else:
-          setback = 0 if kind == 'urban' else rng.uniform(2, 8)
-          _building(b, x, x + length, facade + side * setback, side,
-                    rng.uniform(8, 15), height, g, rng)
-      x += length + gap
-    # Poles, trees, parked cars along this side.
-    for x in np.arange(-extent + rng.uniform(0, 15), extent, rng.uniform(15, 30)):
-      if not on_cross(x, x):
-        y = edge + side * max(side_w - 0.4, 0.6)
-        b.add(_CYL, (0.2, 0.2, 7.0), (x, y, g + 3.5), 'metal')
-    n_trees = {'urban': 6, 'residential': 18, 'rural': 30}[kind]
-    for _ in range(n_trees):
-      x = rng.uniform(-extent, extent)
-      if not on_cross(x, x):
-        y = edge + side * (side_w + rng.uniform(1.0, 20.0 if kind == 'rural' else 3.0))
-        _tree(b, x, y, g, rng)
-    n_parked = {'urban': 10, 'residential': 8, 'rural': 1}[kind]
-    for _ in range(n_parked):
-      x = rng.uniform(-70, 70)
-      if abs(x) > 4 and not on_cross(x, x):
-        _car(b, x, edge - side * 1.1, rng.uniform(-0.05, 0.05), g, rng)
-  # Moving cars in the lanes (not on the ego car).
+        setback = 0 if kind == 'urban' else rng.uniform(2, 8)
+        _building(b, x, x + length, facade + side * setback, side,
+                  rng.uniform(8, 15), height, g, rng)
+    x += length + gap
+
+
+def _traffic(b: SceneBuilder, road: _Road, kind: str, rng):
+  """Cars moving in the road's lanes, each lane's way (none on the ego car)."""
   for _ in range({'urban': 8, 'residential': 4, 'rural': 3}[kind]):
-    lane = int(rng.integers(lanes))
-    y = -half + lane_w / 2 + lane * lane_w - ego_y
+    lane = int(rng.integers(road.lanes))
+    y = -road.half + LANE_W / 2 + lane * LANE_W - road.ego_y
     x = rng.uniform(-60, 60)
     if abs(y) < 1 and abs(x) < 8:
       continue
-    _car(b, x, y, np.pi * (lane < lanes / 2) + rng.uniform(-0.03, 0.03), g, rng)
-  # The ego vehicle: its body lies inside the sensor's blind cone, but the
-  # roof rack behind the sensor shadows a rear sector of the lowest beams.
-  b.box((-1.2, -0.3, -0.6), (-0.5, 0.3, -0.35), 'ego')
-  mesh, material = b.mesh()
-  return mesh, material, {'kind': kind, 'cross_street': bool(cross),
-                          'lanes': lanes}
+    _car(b, x, y, np.pi * (lane < road.lanes / 2) + rng.uniform(-0.03, 0.03), road.ground, rng)
