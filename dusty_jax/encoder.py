@@ -27,7 +27,7 @@ import optax
 
 from dusty_jax import codec, errors, layers
 from dusty_jax.codec import ALPHA
-from dusty_jax.models import EqualConv, check_shape
+from dusty_jax.models import EqualConv, check_shape, pad_rows
 
 TRAIN_COMMAND = 'python -m dusty_jax.tools.train_encoder --workdir RUN'
 
@@ -82,6 +82,7 @@ class Encoder(nn.Module):
   @nn.compact
   def __call__(self, scan):
     check_shape(self.sensor)
+    scan = pad_rows(scan, self.sensor)  # rows of no-returns up to a multiple of 16
     valid = jnp.isfinite(scan) & (scan > ALPHA)
     x = jnp.stack([jnp.where(valid, scan, 0.0), 2.0 * valid - 1.0], axis=-1)
     for i in range(4):

@@ -1,7 +1,7 @@
 """DUSty generator and discriminator (the paper's Table I), Flax linen.
 
 Shapes come from the sensor: the first generator kernel and the last
-discriminator kernel are H/16 x W/16. Every layer uses the equalized learning
+discriminator kernel are H/16 x W/16 (H rounded up: :func:`check_shape`). Every layer uses the equalized learning
 rate: weights are drawn N(0, 1) and scaled at run time by a per-layer
 constant (the sqrt(2) gain of leaky ReLU is applied after the activation, as
 in the authors' code). Two choices of the constant (``eqlr``):
@@ -47,14 +47,30 @@ EQLR = ('authors', 'fan_in')
 
 
 def check_shape(sensor: SensorSpec):
+  """(H/16, W/16) rounded up: the networks' coarsest grid for ``sensor``.
+
+  Any number of rows works: the networks run on the rows rounded up to a
+  multiple of 16 (:func:`pad_rows`); the generator's extra rows are cut off
+  before anything reads its outputs, and the rows the discriminator and the
+  encoder get added are no-returns (ALPHA), for real and generated scans
+  alike. A width must be a multiple of 16: columns are the circle, and a
+  padded column would be a seam."""
   h, w = sensor.shape
-  if h % DOWNSAMPLE or w % DOWNSAMPLE:
+  if w % DOWNSAMPLE:
     near = max(DOWNSAMPLE, DOWNSAMPLE * round(w / DOWNSAMPLE))
-    fix = (f'; the nearest valid width is {near} (--config.sensor.width={near})'
-           if w % DOWNSAMPLE else '')
-    raise ValueError(f'sensor {sensor.name!r}: H and W must be multiples of '
-                     f'{DOWNSAMPLE} for this network, got {h}x{w}{fix}')
-  return h // DOWNSAMPLE, w // DOWNSAMPLE
+    raise ValueError(f'sensor {sensor.name!r}: W must be a multiple of {DOWNSAMPLE} '
+                     f'for this network, got {h}x{w}; the nearest valid width is '
+                     f'{near} (--config.sensor.width={near})')
+  return -(-h // DOWNSAMPLE), w // DOWNSAMPLE
+
+
+def pad_rows(x, sensor: SensorSpec, multiple: int = DOWNSAMPLE, value=ALPHA):
+  """(B, H, W, ...) -> (B, H', W, ...), H' = H rounded up to ``multiple``:
+  rows of ``value`` below the sensor's lowest beam (nothing where H is one)."""
+  extra = -sensor.shape[0] % multiple
+  if not extra:
+    return x
+  return jnp.pad(x, [(0, 0), (0, extra)] + [(0, 0)] * (x.ndim - 2), constant_values=value)
 
 
 def _normal(key, shape, dtype=jnp.float32):
@@ -149,7 +165,8 @@ class Generator(nn.Module):
     cells = (self.param('depth_levels', nn.initializers.zeros, (h, levels_lib.BINS))
              if self.depth_levels else None)
     def out(features):
-      y = head(features) + bias
+      y = head(features)
+      y = (y[:, :h] if y.shape[1] > h else y) + bias  # the sensor's rows (check_shape)
       if rows is not None:
         y = y.at[..., 1].add(rows[:, None])
       if cells is not None:  # x_tilde as Variant.decode_inv_depth makes it
@@ -168,7 +185,8 @@ class Discriminator(nn.Module):
   @nn.compact
   def __call__(self, x):
     """x: (B, H, W) scans, or (B, H, W, C) with more channels -> (B,) logits."""
-    h0, w0 = check_shape(self.sensor)
+    check_shape(self.sensor)
+    x = pad_rows(x, self.sensor)
     x = layers.blur_vh(x[..., None] if x.ndim == 3 else x)
     for i in range(4):
       c = min(self.ch_base << i, self.ch_max)

@@ -89,7 +89,8 @@ def features(depth, known, sensor: SensorSpec):
 
 class Selector(nn.Module):
   """A two-level U-Net on the cylinder: inputs (B, H, W, C) -> logits
-  (B, H, W, K). H and W must be multiples of 4."""
+  (B, H, W, K). W must be a multiple of 4 (the sensor's is of 16); rows
+  are padded with zeros up to a multiple of 4 and cut off again."""
   settings: Settings
 
   @nn.compact
@@ -100,12 +101,14 @@ class Selector(nn.Module):
     block = lambda h, f: nn.gelu(conv(nn.gelu(conv(h, f)), f))
     pool = lambda h: nn.avg_pool(h, (2, 2), (2, 2))
     up = lambda h: jnp.repeat(jnp.repeat(h, 2, 1), 2, 2)
+    rows = x.shape[1]
+    x = jnp.pad(x, [(0, 0), (0, -rows % 4), (0, 0), (0, 0)])
     h1 = block(x, w)
     h2 = block(pool(h1), 2 * w)
     h3 = block(pool(h2), 2 * w)
     h2 = block(jnp.concatenate([up(h3), h2], -1), 2 * w)
     h1 = block(jnp.concatenate([up(h2), h1], -1), w)
-    return nn.Dense(self.settings.num_candidates)(h1)
+    return nn.Dense(self.settings.num_candidates)(h1)[:, :rows]
 
 
 def combine(logits, cands):
