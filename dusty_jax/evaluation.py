@@ -287,20 +287,33 @@ def restoration(params: GeneratorParams, depth, *, corruption: str = '',
   if fills and per_scan:
     record['fill'] = fill_record(params, depth, corruption, seed, filled_by_inversion)
   if truth is not None and per_scan:
-    m = np.concatenate(measurability)
-    obs = np.concatenate(observed)
-    comp, prob = (np.asarray(t[:len(per_scan)]) for t in truth)
-    cal = calibration.reliability(m, 1.0 - prob)
-    brief = lambda scores: {k: scores[k] for k in PLACEMENT}
-    record['ground_truth'] = {
-        'complete_depth': {k: records.finite_mean(np.concatenate([c[k] for c in complete]))
-                           for k in complete[0]},
-        'ece': cal['ece'],
-        'placement': brief(ground_truth.measurability_scores(sensor, m, obs, comp, prob)),
-        'reliability': {k: np.asarray(v).tolist() for k, v in cal.items() if k != 'ece'}}
-    if ring_keep is not None:
-      record['ground_truth']['ring_table'] = brief(
-          ground_truth.ring_table_scores(sensor, ring_keep, obs, comp, prob))
+    record['ground_truth'] = _ground_truth_record(
+        sensor, truth, np.concatenate(measurability), np.concatenate(observed), complete,
+        ring_keep)
+  return record
+
+
+def _ground_truth_record(sensor, truth, measurability, observed, complete,
+                         ring_keep=None) -> dict:
+  """What :func:`restoration` reports against a simulator's ``truth``
+  (complete depth, drop probability) of the scans restored: x_tilde's
+  errors against the complete depth (``complete``: per batch,
+  reconstruction.completion_errors), how the ``measurability`` (N, H, W)
+  is calibrated and ranks the ``observed`` scans' drops, and, with
+  ``ring_keep``, the same scores of the training split's per-ring table."""
+  comp, prob = (np.asarray(t[:len(observed)]) for t in truth)
+  cal = calibration.reliability(measurability, 1.0 - prob)
+  brief = lambda scores: {k: scores[k] for k in PLACEMENT}
+  record = {
+      'complete_depth': {k: records.finite_mean(np.concatenate([c[k] for c in complete]))
+                         for k in complete[0]},
+      'ece': cal['ece'],
+      'placement': brief(ground_truth.measurability_scores(sensor, measurability, observed,
+                                                           comp, prob)),
+      'reliability': {k: np.asarray(v).tolist() for k, v in cal.items() if k != 'ece'}}
+  if ring_keep is not None:
+    record['ring_table'] = brief(
+        ground_truth.ring_table_scores(sensor, ring_keep, observed, comp, prob))
   return record
 
 
