@@ -181,6 +181,8 @@ def remove_damaged(path: str) -> list[str] | None:
       except OSError:
         continue
   until = start - MTIME_GRAIN_S
+  # (Not files.atomic_write: the file moved onto the stamp is the probe made
+  # above, and all it carries is its modification time.)
   try:
     os.utime(fresh, (until, until))
     os.replace(fresh, stamp)

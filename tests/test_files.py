@@ -50,3 +50,31 @@ def test_a_missing_folder_or_a_bad_mode_is_refused(tmp_path):
     with files.atomic_write(str(tmp_path / 'e.txt'), 'a'):
       pass
   assert os.listdir(tmp_path) == []
+
+
+def test_two_writers_of_one_file_at_once_each_move_theirs_whole(tmp_path):
+  """As the processes of a multi-process training write one dataset's
+  meta.json: each has its own temporary, the last to finish wins whole."""
+  path = str(tmp_path / 'meta.json')
+  with files.atomic_write(path) as first:
+    with files.atomic_write(path) as second:
+      first.write('{"by": "first"}')
+      second.write('{"by": "second", "longer": true}')
+    assert json.load(open(path)) == {'by': 'second', 'longer': True}
+  assert json.load(open(path)) == {'by': 'first'}
+  assert os.listdir(tmp_path) == ['meta.json']
+
+
+def test_a_path_for_writers_that_take_one(tmp_path):
+  path = str(tmp_path / 'x.npy')
+  with files.atomic_path(path, '.npy') as tmp:
+    assert tmp.endswith('.npy') and os.path.dirname(tmp) == str(tmp_path)
+    np.lib.format.open_memmap(tmp, mode='w+', dtype=np.float32, shape=(3,))[:] = [1, 2, 3]
+    assert not os.path.exists(path)
+  np.testing.assert_array_equal(np.load(path), [1, 2, 3])
+  with pytest.raises(KeyboardInterrupt):
+    with files.atomic_path(path, '.npy') as tmp:
+      np.save(tmp, np.zeros(2))
+      raise KeyboardInterrupt
+  np.testing.assert_array_equal(np.load(path), [1, 2, 3])  # the old file stays
+  assert os.listdir(tmp_path) == ['x.npy']

@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-from dusty_jax import sensor as sensor_lib
+from dusty_jax import files, sensor as sensor_lib
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec, check_angles
 
@@ -290,17 +290,14 @@ def read_meta(directory: str) -> dict:
 
 def write_meta(directory: str, meta: dict):
   os.makedirs(directory, exist_ok=True)
-  tmp = os.path.join(directory, META + '.tmp')
-  with open(tmp, 'w') as f:
+  with files.atomic_write(os.path.join(directory, META)) as f:
     json.dump(meta, f, indent=2, sort_keys=True)
-  os.replace(tmp, os.path.join(directory, META))
 
 
 def save_array(path: str, arr: np.ndarray):
   """Writes atomically: a half-written file never replaces a good one."""
-  tmp = path + '.tmp.npy'
-  np.save(tmp, np.ascontiguousarray(arr))
-  os.replace(tmp, path)
+  with files.atomic_write(path, 'wb') as f:
+    np.save(f, np.ascontiguousarray(arr))
 
 
 def empty_array(path: str, shape) -> int:
@@ -318,7 +315,9 @@ class SplitWriter:
   with N: at most ``capacity`` scans, into a temporary .npy (header from
   ``np.lib.format.open_memmap``, rows appended with plain writes, which keep
   nothing resident), then :meth:`close` sets the header to the scans
-  written, cuts the file there and moves it into place atomically.
+  written, cuts the file there and moves it into place atomically. (Its own
+  os.replace, not files.atomic_write: the file lives across calls, is made
+  by open_memmap, and a writer given no scan leaves none.)
   """
 
   def __init__(self, path: str, capacity: int, shape):

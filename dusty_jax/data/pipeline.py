@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from dusty_jax import codec, sensor as sensor_lib
+from dusty_jax import codec, files, sensor as sensor_lib
 from dusty_jax.data import arrays, identity
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
@@ -160,10 +160,8 @@ class TrainingData:
              'changes': self.switched})
     if write:
       record.update(file=self.path, identity=self.identity)
-      tmp = path + '.tmp'
-      with open(tmp, 'w') as f:
+      with files.atomic_write(path) as f:
         json.dump(record, f, indent=2)
-      os.replace(tmp, path)
 
   def changed(self) -> str | None:
     """What changed in the split's file since the start, or None. One stat

@@ -13,11 +13,11 @@ import multiprocessing
 import os
 import sys
 import types
-import uuid
 
 import numpy as np
 import tqdm
 
+from dusty_jax import files
 from dusty_jax.data import arrays, identity, scene, simulated_lidar
 from dusty_jax.sensor import SensorSpec
 
@@ -119,20 +119,19 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
   seq = {'train': 0, 'val': 8, 'test': 11}
   # Each split's three arrays are made here as temporary .npy files, and the
   # workers write each scan into them; one pool for all splits. The files
-  # are this call's own: the processes of a multi-process training simulate
-  # the same data into the same folder at once, each moving its files into
-  # place whole.
+  # are this call's own (files.atomic_path): the processes of a multi-process
+  # training simulate the same data into the same folder at once, each
+  # moving its files into place whole, once every scan is written.
   paths = {split: tuple(arrays.split_path(out, split, kind) for kind in ('', 'complete',
                                                                          'drop_prob'))
            for split in splits}
-  tmps = {}
-  jobs = []
-  try:
+  with contextlib.ExitStack() as written:
+    jobs = []
     for split, n in splits.items():
-      for path in paths[split]:  # (one shape: one data offset for the three)
-        tmps[path] = f'{path}.{uuid.uuid4().hex}.tmp.npy'
-        offset = arrays.empty_array(tmps[path], (n,) + sensor.shape)
-      jobs += [(s, sensor_, tuple(tmps[p] for p in paths[split]), offset, i)
+      tmps = tuple(written.enter_context(files.atomic_path(p, '.npy')) for p in paths[split])
+      for tmp in tmps:  # (one shape: one data offset for the three)
+        offset = arrays.empty_array(tmp, (n,) + sensor.shape)
+      jobs += [(s, sensor_, tmps, offset, i)
                for i, (s, sensor_) in enumerate(_jobs(n, sensor, seed * 10 +
                                                       SPLIT_SEED_OFFSET[split]))]
     with _rendered(jobs, workers, simulated_lidar.render_into) as done:
@@ -140,12 +139,6 @@ def write_dataset(out: str, sensor: SensorSpec, num: int, seed: int = 0,
         for _ in tqdm.trange(n, desc=split, unit='scan', file=sys.stderr,
                              disable=not progress):
           next(done)
-    for path, tmp in tmps.items():
-      os.replace(tmp, path)
-  finally:
-    for tmp in tmps.values():
-      if os.path.exists(tmp):
-        os.remove(tmp)
   if bins:
     # Here: kitti imports JAX (through unfolding and codec); at the top, it
     # would make every pool of _rendered spawn rather than fork.
