@@ -193,7 +193,7 @@ def _warn_if_not_encoded(scans: np.ndarray, single: bool):
         f'{which} no value below 0 and no drop (-1): not normalised inverse depth '
         'as invert() takes, where far returns lie below 0 and drops at -1. Given '
         'depth / max_depth (or other [0, 1] values) by mistake? Encode metric '
-        'depth with dusty_jax.codec.encode(depth, params.sensor)', stacklevel=3)
+        'depth with dusty_jax.codec.encode(depth, params.sensor)', stacklevel=4)
 
 
 def _warn_if_empty(scans: np.ndarray, masks: np.ndarray | None):
@@ -203,7 +203,40 @@ def _warn_if_empty(scans: np.ndarray, masks: np.ndarray | None):
   empty = np.flatnonzero(~valid.any(axis=(1, 2)))
   if empty.size:
     warnings.warn(f'scans {empty.tolist()} have no valid pixel: nothing to '
-                  'fit, their result is the initial latent', stacklevel=3)
+                  'fit, their result is the initial latent', stacklevel=4)
+
+
+def _check_scans(params, scan, mask):
+  """invert's (scan (B, H, W) float32, mask (B, H, W) or None, single) from
+  its arguments, or the error naming what is wrong with them."""
+  scan = jnp.asarray(codec.check_precision(scan, 'scan'), jnp.float32)
+  if scan.ndim not in (2, 3):
+    raise ValueError(f'scan of shape {scan.shape}: expected (H, W) or (B, H, W)')
+  if not isinstance(scan, jax.core.Tracer):
+    finite = np.asarray(scan)[np.isfinite(np.asarray(scan))]
+    if finite.size and (finite.min() < ALPHA - 1e-6 or finite.max() > 1.0 + 1e-6):
+      raise ValueError(
+          f'scan values lie in [{finite.min():.4g}, {finite.max():.4g}], outside the '
+          'normalised inverse depth [-1, 1] that invert() takes (metres given by '
+          'mistake?); encode metric depth with dusty_jax.codec.encode(depth, '
+          'params.sensor), which also marks 0 / out-of-range depths as drops')
+  single = scan.ndim == 2
+  given = scan.shape
+  if mask is not None and np.shape(mask) != scan.shape:
+    raise ValueError(f'mask of shape {np.shape(mask)} does not match the scan '
+                     f'{scan.shape}')
+  if single:
+    scan = scan[None]
+    mask = None if mask is None else jnp.asarray(mask)[None]
+  if scan.shape[1:] != params.sensor.shape:
+    hw = tuple(params.sensor.shape)
+    raise ValueError(f'scan of shape {given} does not match the generator\'s sensor '
+                     f'{hw}: expected {hw} or (B,) + {hw}')
+  if not isinstance(scan, jax.core.Tracer):
+    _warn_if_not_encoded(np.asarray(scan), single)
+    if not isinstance(mask, jax.core.Tracer):
+      _warn_if_empty(np.asarray(scan), None if mask is None else np.asarray(mask))
+  return scan, mask, single
 
 
 def invert(params: GeneratorParams, scan, mask=None, *, key=None,
@@ -249,33 +282,7 @@ def invert(params: GeneratorParams, scan, mask=None, *, key=None,
     raise ValueError(f'lr={lr!r}: the learning rate must be a finite number > 0')
   sampling.check_params(params)
   params = sampling.full_precision(params)
-  scan = jnp.asarray(codec.check_precision(scan, 'scan'), jnp.float32)
-  if scan.ndim not in (2, 3):
-    raise ValueError(f'scan of shape {scan.shape}: expected (H, W) or (B, H, W)')
-  if not isinstance(scan, jax.core.Tracer):
-    finite = np.asarray(scan)[np.isfinite(np.asarray(scan))]
-    if finite.size and (finite.min() < ALPHA - 1e-6 or finite.max() > 1.0 + 1e-6):
-      raise ValueError(
-          f'scan values lie in [{finite.min():.4g}, {finite.max():.4g}], outside the '
-          'normalised inverse depth [-1, 1] that invert() takes (metres given by '
-          'mistake?); encode metric depth with dusty_jax.codec.encode(depth, '
-          'params.sensor), which also marks 0 / out-of-range depths as drops')
-  single = scan.ndim == 2
-  given = scan.shape
-  if mask is not None and np.shape(mask) != scan.shape:
-    raise ValueError(f'mask of shape {np.shape(mask)} does not match the scan '
-                     f'{scan.shape}')
-  if single:
-    scan = scan[None]
-    mask = None if mask is None else jnp.asarray(mask)[None]
-  if scan.shape[1:] != params.sensor.shape:
-    hw = tuple(params.sensor.shape)
-    raise ValueError(f'scan of shape {given} does not match the generator\'s sensor '
-                     f'{hw}: expected {hw} or (B,) + {hw}')
-  if not isinstance(scan, jax.core.Tracer):
-    _warn_if_not_encoded(np.asarray(scan), single)
-    if not isinstance(mask, jax.core.Tracer):
-      _warn_if_empty(np.asarray(scan), None if mask is None else np.asarray(mask))
+  scan, mask, single = _check_scans(params, scan, mask)
   key = sampling.as_key(key)
   if key.shape not in ((), (len(scan),)):
     raise ValueError(f'key: expected one key or {len(scan)} keys, got shape '
