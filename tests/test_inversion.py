@@ -417,8 +417,8 @@ def _real_and_simulated_depths(sensor):
   and of simulated ones."""
   from conftest import random_depth, sensor_order_points
   from dusty_jax.data import simulated_lidar, unfolding
-  real = [unfolding.unfold_scan(sensor_order_points(random_depth(sensor, seed=s), sensor,
-                                                     seed=s), sensor)[0]
+  real = [unfolding.unfold(sensor_order_points(random_depth(sensor, seed=s), sensor, seed=s),
+                           sensor, firing_order=True).depth
           for s in range(3)]
   sim = [simulated_lidar.render_scan(s, sensor).depth for s in range(3)]
   return np.stack(real), np.stack(sim)

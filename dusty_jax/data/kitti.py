@@ -1,4 +1,4 @@
-"""KITTI odometry velodyne scans (HDL-64E), read and unfolded in sensor order."""
+"""KITTI odometry velodyne scans (HDL-64E), read and unfolded in firing order."""
 
 from __future__ import annotations
 
@@ -32,7 +32,8 @@ def read_bin(path: str) -> np.ndarray:
                      f'{POINT_BYTES} (float32 x, y, z, reflectance per point); '
                      'truncated or not a KITTI velodyne file')
   points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-  return unfolding.check_points(points, path)
+  unfolding.check_points(points, path, finite=True)
+  return points
 
 
 def write_bin(path: str, points: np.ndarray):
@@ -63,6 +64,7 @@ def list_split(root: str, split: str) -> list[str]:
 
 
 def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
-  """Reads and unfolds one scan: (H, W) depth[, (H, W, 3) xyz], report."""
-  return unfolding.unfold_scan(read_bin(path), sensor, source=path,
-                                return_xyz=return_xyz)
+  """Reads and unfolds one scan, its rows from the firing order (the
+  authors' rule): (H, W) depth[, (H, W, 3) xyz], :class:`unfolding.Unfolded`."""
+  u = unfolding.unfold(read_bin(path), sensor, source=path, firing_order=True)
+  return (u.depth, u.xyz, u) if return_xyz else (u.depth, u)

@@ -4,7 +4,8 @@ Layout, as distributed and read by the authors: ``ROOT/Data/`` holding
 ``class{C}_set{SSS}_scan{NNNNN}.npy``. Each file is either
 
   * (N, >=4) points: x, y, z[, ...], ring id in the last column (ring 0 the
-    lowest beam, the Velodyne driver's convention); or
+    lowest beam, the Velodyne driver's convention; unfold orders the rings
+    by their measured elevation, whatever their numbering); or
   * an (H, W', >=3) grid of points already arranged by ring and azimuth
     (W' a multiple of the sensor's width; zeros where there is no return).
 """
@@ -56,17 +57,16 @@ def read_npy(path: str) -> np.ndarray:
 
 
 def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
-  """(H, W) depth[, (H, W, 3) xyz] of one MPO file."""
+  """(H, W) depth[, (H, W, 3) xyz], :class:`unfolding.Unfolded` of one MPO
+  file: points unfolded with their ring ids (rows by each ring's elevation),
+  or a grid, which is already the image (its kept columns; no Unfolded)."""
   arr = read_npy(path)
   if arr.ndim == 2:
     if arr.shape[1] < 4:
       raise ValueError(f'{path}: point array needs x, y, z and a ring id '
                        f'column, got shape {arr.shape}')
-    ring = arr[:, -1]
-    if not np.isfinite(ring).all() or (ring != np.round(ring)).any():
-      raise ValueError(f'{path}: ring ids (last column) must be integers')
-    return unfolding.unfold_rings(arr[:, :3], ring, sensor, source=path,
-                                   return_xyz=return_xyz)
+    u = unfolding.unfold(arr[:, :3], sensor, ring=arr[:, -1], source=path)
+    return (u.depth, u.xyz, u) if return_xyz else (u.depth, u)
   if arr.ndim == 3:
     h, w, c = arr.shape
     if h != sensor.height or w % sensor.width or c < 3:
@@ -77,6 +77,6 @@ def load_scan(path: str, sensor: SensorSpec, return_xyz: bool = False):
     if not np.isfinite(xyz).all():
       raise ValueError(f'{path}: NaN or inf coordinates')
     depth = np.linalg.norm(xyz, axis=-1).astype(np.float32)
-    return (depth, xyz) if return_xyz else depth
+    return (depth, xyz, None) if return_xyz else (depth, None)
   raise ValueError(f'{path}: expected (N, >=4) points or an (H, W, >=3) grid, '
                    f'got shape {arr.shape}')

@@ -1,14 +1,17 @@
 """Point cloud -> range image (numpy; offline data preparation).
 
-Ways to turn a point cloud into an H x W image:
-  * :func:`to_range_image` (:func:`unfold`) for any spinning LiDAR: rows from
-    a ring field mapped by each ring's measured elevation, else from the
-    nearest beam's elevation; what it drops it counts (:class:`Unfolded`);
-  * :func:`unfold_scan` follows the sensor's own firing order (KITTI stores
-    points ring after ring, each ring sweeping in azimuth), as in the paper;
-  * :func:`spherical_projection` bins by elevation angle, for sensors whose
-    files have no ring order.
-:func:`unfold_rings` places points whose ring id is known (MPO).
+:func:`unfold` turns one sweep of any spinning LiDAR into an H x W range
+image and counts what it dropped (:class:`Unfolded`). Its rows come from
+
+  * a ring field (the driver's beam ids, in any numbering): each ring's
+    measured elevation, matched to the spec's beams (:func:`rows_from_ring_field`);
+  * the sensor's firing order, for files that store points ring after ring
+    (KITTI): a ring ends where the azimuth falls back, as the authors unfold
+    KITTI (:func:`rows_from_firing_order`);
+  * else each point's nearest beam (:func:`nearest_beam`).
+
+Its columns come from the azimuth (SensorSpec.column_of), and the nearest
+return wins each pixel (:func:`_scatter_nearest`, the one scatter).
 
 :func:`estimate_angles` (or :class:`AngleAccumulator` over many scans)
 averages the per-pixel angle table that codec.to_points back-projects with.
@@ -25,59 +28,101 @@ from dusty_jax.codec import valid_depth
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import SensorSpec
 
+# Within a ring the azimuth only grows (up to jitter far below this).
+RING_BREAK_AZIMUTH = np.deg2rad(10.0)
+# A file in firing order whose rings are fewer than the spec's beams is also
+# split where the elevation jumps by this share of the beam spacing.
+RING_BREAK_SPACINGS = 0.6
 
+# A file whose points mostly fall outside the spec is not of this sensor.
+MIN_INSIDE_SHARE = 0.5
+# Nor is one whose returns on the beams and in range a spec places in far
+# fewer pixels than a sweep of its sensor fills: one pixel per firing that
+# its columns keep (width / native_width of them), each firing on its own
+# beam. Of that norm, the real VLP-16 and PandarXT16 samples in the vlp16
+# preset place 0.86-0.88, KITTI's sample in the kitti preset 0.85 (dual
+# returns would place half); KITTI's in a 16-beam spec of 256 of 1800
+# columns 0.18, in hdl32e at 256 columns 0.17, its beams between the spec's
+# and its firings between the kept ones.
+MIN_PLACED_OF_NORM = 1 / 3
+# Too few returns to judge by the share they fill (a few stray points).
+MIN_PLACED_EXPECTED = 100
+
+# A ring whose median elevation lies farther than this many beam spacings
+# outside the spec's top or bottom beam is not one of its beams.
+RING_MARGIN_SPACINGS = 1.0
+
+# Passes of nearest_beam's search with the offsets of the beams it found:
+# a beam's offset changes little from one beam to the next, so the search
+# settles in a pass or two even where the offsets move a near point past
+# several beams (an Ouster OS0's at half a metre: 2 beams of 128).
+NEAREST_PASSES = 3
+
+
+class NotThisSensor(DataError):
+  """A sweep that the spec cannot be the sensor of (:func:`unfold`)."""
 
 
 @dataclasses.dataclass
-class UnfoldReport:
-  """What :func:`unfold_scan` found, for the caller to report."""
-  rings_found: int
-  rings_expected: int
-  rows: np.ndarray  # row assigned to each found ring.
-  matched_by_elevation: bool
+class Unfolded:
+  """A range image and what became of each point (:func:`unfold`).
 
-  @property
-  def ok(self) -> bool:
-    return self.rings_found == self.rings_expected
-
-
-def check_points(points: np.ndarray, source: str = 'points') -> np.ndarray:
-  """Validates an (N, >=3) float array; names ``source`` in every error."""
-  points = np.asarray(points)
-  if points.ndim != 2 or points.shape[1] < 3:
-    raise ValueError(f'{source}: expected an (N, >=3) array of points, got '
-                     f'shape {points.shape}')
-  if points.shape[0] == 0:
-    raise ValueError(f'{source}: the scan has no points')
-  bad = ~np.isfinite(points[:, :3]).all(axis=1)
-  if bad.any():
-    raise ValueError(f'{source}: {int(bad.sum())} of {len(points)} points '
-                     'have NaN or inf coordinates')
-  return points
-
-
-def _scatter_nearest(rows, cols, xyz, keep, sensor, return_xyz):
-  """Depth image where the nearest point wins each shared pixel; 0 = empty.
-
-  ``cols`` is :meth:`SensorSpec.column_of`'s (column, kept): only points on
-  kept firings count. With ``return_xyz`` also the (H, W, 3) points, zeros where empty.
+  ``depth`` (H, W) metric range, 0 where no return; ``xyz`` (H, W, 3) the
+  winning points. The counts partition the points: ``no_return`` (at the
+  origin or NaN: placeholders for beams without a return), ``out_of_range``
+  (not inside the spec's (min_depth, max_depth)), ``off_elevation`` (farther
+  than half a beam spacing outside the spec's beams, or on a ring whose
+  median is), ``between_columns`` (firings between the kept ones),
+  ``hidden`` (a nearer point won the pixel), ``placed``; in firing order
+  (:func:`unfold`) the points out of range compete for their pixel all the
+  same. ``ring_rows``: {ring id: row} where a ring field or the firing
+  order decided the rows (row -1: a ring off the beams).
   """
-  cols, kept = cols
-  keep = keep & kept
-  rows, cols, xyz = rows[keep], cols[keep], xyz[keep]
-  depth = np.linalg.norm(xyz, axis=1)
-  order = np.argsort(-depth, kind='stable')  # far first, near written last.
-  image = np.zeros(sensor.shape, np.float32)
-  image[rows[order], cols[order]] = depth[order]
-  if not return_xyz:
-    return image
-  points = np.zeros(sensor.shape + (3,), np.float32)
-  points[rows[order], cols[order]] = xyz[order]
-  return image, points
+  depth: np.ndarray
+  xyz: np.ndarray
+  points: int
+  no_return: int
+  out_of_range: int
+  off_elevation: int
+  between_columns: int
+  hidden: int
+  placed: int
+  ring_rows: dict | None
+
+  def summary(self) -> str:
+    return (f'{self.placed} of {self.points} points placed; dropped: '
+            f'{self.no_return} without a return, {self.out_of_range} out of range, '
+            f'{self.off_elevation} off the beams, {self.between_columns} between '
+            f'kept columns, {self.hidden} behind a nearer point in their pixel')
 
 
-# Within a ring the azimuth only grows (up to jitter far below this).
-RING_BREAK_AZIMUTH = np.deg2rad(10.0)
+def check_points(points, source: str = 'points', finite: bool = False) -> np.ndarray:
+  """(N, 3) float64 x, y, z of an (N, >=3) array, or of a dict of fields with
+  'x', 'y', 'z' (data.read_points' output). One DataError naming ``source``
+  for another shape, no points, or (with ``finite``) NaN or inf coordinates."""
+  if isinstance(points, dict):
+    try:
+      xyz = np.stack([np.asarray(points[k], np.float64) for k in 'xyz'], 1)
+    except KeyError as e:
+      raise DataError(f'{source}: no {e} field among {sorted(points)}') from None
+  else:
+    xyz = np.asarray(points)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+      raise DataError(f'{source}: expected an (N, >=3) array of points, got '
+                      f'shape {xyz.shape}')
+    xyz = xyz[:, :3].astype(np.float64)
+  if not len(xyz):
+    raise DataError(f'{source}: the scan has no points')
+  if finite:
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+      raise DataError(f'{source}: {int(bad.sum())} of {len(xyz)} points '
+                      'have NaN or inf coordinates')
+  return xyz
+
+
+def _elevation(xyz: np.ndarray) -> np.ndarray:
+  return np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
 
 
 def _split_rings(azimuth: np.ndarray, elevation=None, min_jump=None):
@@ -95,12 +140,6 @@ def _split_rings(azimuth: np.ndarray, elevation=None, min_jump=None):
   if elevation is not None:
     brk |= np.abs(np.diff(elevation)) > min_jump
   return np.concatenate([[0], np.flatnonzero(brk) + 1])
-
-
-def _ring_ids(starts, n):
-  ids = np.zeros(n, np.int64)
-  ids[starts[1:]] = 1
-  return np.cumsum(ids)
 
 
 def _assign_rows(ring_elevation: np.ndarray, sensor: SensorSpec) -> np.ndarray:
@@ -135,200 +174,40 @@ def _assign_rows(ring_elevation: np.ndarray, sensor: SensorSpec) -> np.ndarray:
   return rows
 
 
-def unfold_scan(points: np.ndarray, sensor: SensorSpec, source: str = 'scan',
-                return_xyz: bool = False):
-  """Unfolds a sensor-ordered scan (KITTI velodyne) into an (H, W) depth image.
+def rows_from_firing_order(xyz: np.ndarray, sensor: SensorSpec, source: str):
+  """({ring: row}, row per point) of a sweep stored in the sensor's firing
+  order: ring after ring, top beam first, each ring sweeping
+  counter-clockwise from straight ahead (KITTI's velodyne files).
 
-  Args:
-    points: (N, >=3) x, y, z[, reflectance], stored ring after ring, top
-      beam first, each ring sweeping counter-clockwise from straight ahead.
-    sensor: the sensor spec (H rings, native and kept columns).
-    source: a name for error messages (the file path).
-
-  Returns:
-    depth: (H, W) float32 metric range, 0 where no point landed.
-    xyz: (H, W, 3) points of the winning returns, only with ``return_xyz``.
-    report: rings found versus expected. When the counts differ, rings are
-      matched to rows by their median elevation (so an empty ring leaves an
-      empty row instead of shifting every row above it) and a warning names
-      ``source``.
+  A ring ends where the azimuth falls back (:func:`_split_rings`) and ring i
+  is row i, as the authors unfold KITTI. Where that finds fewer rings than
+  the spec has beams, rings are also split where the elevation jumps, and
+  matched to rows by their median elevation (:func:`_assign_rows`), so an
+  empty ring leaves an empty row instead of shifting every row above it; a
+  warning names ``source``. More rings than beams: a DataError.
   """
-  points = check_points(points, source)
-  xyz = points[:, :3].astype(np.float64)
   azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
   starts = _split_rings(azimuth)
-  n_rings = len(starts)
-  ring_id = _ring_ids(starts, len(xyz))
-
-  if n_rings == sensor.height:
-    rows_of_ring = np.arange(n_rings)
-    matched = False
-  else:
-    elev = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
-    if n_rings < sensor.height and sensor.height > 1:
-      # Rings may be missing or merged: also split on elevation jumps.
+  rows_of_ring = np.arange(sensor.height)
+  if len(starts) != sensor.height:
+    elevation = _elevation(xyz)
+    if len(starts) < sensor.height:  # rings missing or merged
       spacing = np.min(np.abs(np.diff(sensor.elevation)))
-      starts = _split_rings(azimuth, elev, 0.6 * spacing)
-      n_rings = len(starts)
-      ring_id = _ring_ids(starts, len(xyz))
-    if n_rings > sensor.height:
-      raise ValueError(
-          f'{source}: found {n_rings} rings but sensor {sensor.name!r} has '
+      starts = _split_rings(azimuth, elevation, RING_BREAK_SPACINGS * spacing)
+    if len(starts) > sensor.height:
+      raise DataError(
+          f'{source}: found {len(starts)} rings but sensor {sensor.name!r} has '
           f'{sensor.height}; is this the right sensor, and is the file in '
           'sensor order?')
-    ring_elev = np.array(
-        [np.median(elev[ring_id == r]) for r in range(n_rings)])
-    rows_of_ring = _assign_rows(ring_elev, sensor)
-    matched = True
-    warnings.warn(
-        f'{source}: found {n_rings} rings, sensor {sensor.name!r} has '
-        f'{sensor.height}; rings matched to rows by elevation, rows '
-        f'{sorted(set(range(sensor.height)) - set(rows_of_ring.tolist()))} '
-        'left empty', stacklevel=2)
-
-  rows = rows_of_ring[ring_id]
-  cols = sensor.column_of(azimuth)
-  out = _scatter_nearest(rows, cols, xyz, np.ones(len(xyz), bool), sensor,
-                         return_xyz)
-  report = UnfoldReport(n_rings, sensor.height, rows_of_ring, matched)
-  return (*out, report) if return_xyz else (out, report)
-
-
-def unfold_rings(points: np.ndarray, ring: np.ndarray, sensor: SensorSpec,
-                 source: str = 'scan', bottom_first: bool = True,
-                 return_xyz: bool = False):
-  """(H, W) depth image from points with known laser ring ids (MPO).
-
-  ``ring`` ids run 0..H-1; with ``bottom_first`` (the Velodyne driver's
-  convention) ring 0 is the lowest beam and lands in the last row.
-  """
-  points = check_points(points, source)
-  ring = np.asarray(ring).astype(np.int64)
-  if ring.shape != (len(points),):
-    raise ValueError(f'{source}: {len(ring)} ring ids for {len(points)} points')
-  if ring.min() < 0 or ring.max() >= sensor.height:
-    raise ValueError(f'{source}: ring ids span {ring.min()}..{ring.max()}, '
-                     f'sensor {sensor.name!r} has rings 0..{sensor.height - 1}')
-  xyz = points[:, :3].astype(np.float64)
-  rows = sensor.height - 1 - ring if bottom_first else ring
-  cols = sensor.column_of(np.arctan2(xyz[:, 1], xyz[:, 0]))
-  return _scatter_nearest(rows, cols, xyz, np.ones(len(xyz), bool), sensor,
-                          return_xyz)
-
-
-def spherical_projection(points: np.ndarray, sensor: SensorSpec,
-                         source: str = 'scan', return_xyz: bool = False):
-  """(H, W) depth image binning points by elevation (nearest nominal beam).
-
-  For sensors without ring order. Points beyond half a beam spacing above the
-  top beam or below the bottom beam are discarded.
-  """
-  points = check_points(points, source)
-  xyz = points[:, :3].astype(np.float64)
-  elev = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
-  nominal = sensor.elevation  # decreasing
-  rows = np.argmin(np.abs(elev[:, None] - nominal[None, :]), axis=1)
-  spacing = np.abs(np.diff(nominal)) if sensor.height > 1 else np.array([1.0])
-  margin = 0.5 * np.concatenate([[spacing[0]], spacing, [spacing[-1]]])
-  inside = (elev <= nominal[0] + margin[0]) & (elev >= nominal[-1] - margin[-1])
-  cols = sensor.column_of(np.arctan2(xyz[:, 1], xyz[:, 0]))
-  return _scatter_nearest(rows, cols, xyz, inside, sensor, return_xyz)
-
-
-# A file whose points mostly fall outside the spec is not of this sensor.
-MIN_INSIDE_SHARE = 0.5
-# Nor is one whose returns on the beams and in range a spec places in far
-# fewer pixels than a sweep of its sensor fills: one pixel per firing that
-# its columns keep (width / native_width of them), each firing on its own
-# beam. Of that norm, the real VLP-16 and PandarXT16 samples in the vlp16
-# preset place 0.86-0.88, KITTI's sample in the kitti preset 0.85 (dual
-# returns would place half); KITTI's in a 16-beam spec of 256 of 1800
-# columns 0.18, in hdl32e at 256 columns 0.17, its beams between the spec's
-# and its firings between the kept ones.
-MIN_PLACED_OF_NORM = 1 / 3
-# Too few returns to judge by the share they fill (a few stray points).
-MIN_PLACED_EXPECTED = 100
-
-# A ring whose median elevation lies farther than this many beam spacings
-# outside the spec's top or bottom beam is not one of its beams.
-RING_MARGIN_SPACINGS = 1.0
-
-
-class NotThisSensor(DataError):
-  """A sweep that the spec cannot be the sensor of (:func:`unfold`)."""
-
-
-@dataclasses.dataclass
-class Unfolded:
-  """A range image and what became of each point (:func:`unfold`).
-
-  ``depth`` (H, W) metric range, 0 where no return; ``xyz`` (H, W, 3) the
-  winning points. The counts partition the points: ``no_return`` (at the
-  origin or NaN: placeholders for beams without a return), ``out_of_range``
-  (not inside the spec's (min_depth, max_depth)), ``off_elevation`` (farther
-  than half a beam spacing outside the spec's beams, or on a ring whose
-  median is), ``between_columns`` (firings between the kept ones),
-  ``hidden`` (a nearer point won the pixel), ``placed``.
-  ``ring_rows``: {ring id: row} where a ring field decided the rows.
-  """
-  depth: np.ndarray
-  xyz: np.ndarray
-  points: int
-  no_return: int
-  out_of_range: int
-  off_elevation: int
-  between_columns: int
-  hidden: int
-  placed: int
-  ring_rows: dict | None
-
-  def summary(self) -> str:
-    return (f'{self.placed} of {self.points} points placed; dropped: '
-            f'{self.no_return} without a return, {self.out_of_range} out of range, '
-            f'{self.off_elevation} off the beams, {self.between_columns} between '
-            f'kept columns, {self.hidden} behind a nearer point in their pixel')
-
-
-def _spacing_margins(sensor: SensorSpec) -> tuple[float, float]:
-  """Half the beam spacing above the top and below the bottom beam (radians)."""
-  if sensor.height == 1:
-    return np.deg2rad(1.0), np.deg2rad(1.0)
-  sp = np.abs(np.diff(sensor.elevation))
-  return 0.5 * sp[0], 0.5 * sp[-1]
-
-
-# Passes of nearest_beam's search with the offsets of the beams it found:
-# a beam's offset changes little from one beam to the next, so the search
-# settles in a pass or two even where the offsets move a near point past
-# several beams (an Ouster OS0's at half a metre: 2 beams of 128).
-NEAREST_PASSES = 3
-
-
-def nearest_beam(sin_el: np.ndarray, rng: np.ndarray, sensor: SensorSpec):
-  """(row, inside) of each point: the beam whose elevation model
-  ``sin(elevation) + b / range`` is nearest to the point's sin(elevation);
-  ``inside``: within half a beam spacing of the outermost beams."""
-  s = np.sin(sensor.elevation)[::-1]  # increasing
-  b = sensor.vertical_offset[::-1]
-  mid = 0.5 * (s[1:] + s[:-1])
-  j = np.searchsorted(mid, sin_el)  # nearest ignoring the offsets
-  if sensor.vertical_offset_m:  # then with them (near points move by
-    for _ in range(NEAREST_PASSES):  # several beams), and the neighbours
-      j = np.searchsorted(mid, sin_el - b[j] / rng)
-    best = j
-    cost = np.abs(sin_el - s[j] - b[j] / rng)
-    for d in (-1, 1):
-      k = np.clip(j + d, 0, len(s) - 1)
-      c = np.abs(sin_el - s[k] - b[k] / rng)
-      best = np.where(c < cost, k, best)
-      cost = np.minimum(c, cost)
-    j = best
-  row = sensor.height - 1 - j
-  top, bottom = _spacing_margins(sensor)
-  corrected = sin_el - b[j] / rng
-  inside = ((corrected <= np.sin(sensor.elevation[0] + top)) &
-            (corrected >= np.sin(sensor.elevation[-1] - bottom)))
-  return row, inside
+    ends = np.append(starts[1:], len(xyz))
+    rows_of_ring = _assign_rows(
+        np.array([np.median(elevation[a:b]) for a, b in zip(starts, ends)]), sensor)
+    empty = sorted(set(range(sensor.height)) - set(rows_of_ring.tolist()))
+    warnings.warn(f'{source}: found {len(starts)} rings, sensor {sensor.name!r} has '
+                  f'{sensor.height}; rings matched to rows by elevation, rows {empty} '
+                  'left empty', stacklevel=4)  # unfold's caller
+  row = np.repeat(rows_of_ring, np.diff(np.append(starts, len(xyz))))
+  return dict(enumerate(rows_of_ring.tolist())), row
 
 
 def rows_from_ring_field(ring: np.ndarray, elevation: np.ndarray, in_range: np.ndarray,
@@ -374,7 +253,111 @@ def rows_from_ring_field(ring: np.ndarray, elevation: np.ndarray, in_range: np.n
           returned[inverse])
 
 
-def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unfolded:
+def _spacing_margins(sensor: SensorSpec) -> tuple[float, float]:
+  """Half the beam spacing above the top and below the bottom beam (radians)."""
+  if sensor.height == 1:
+    return np.deg2rad(1.0), np.deg2rad(1.0)
+  sp = np.abs(np.diff(sensor.elevation))
+  return 0.5 * sp[0], 0.5 * sp[-1]
+
+
+def nearest_beam(sin_el: np.ndarray, rng: np.ndarray, sensor: SensorSpec):
+  """(row, inside) of each point: the beam whose elevation model
+  ``sin(elevation) + b / range`` is nearest to the point's sin(elevation);
+  ``inside``: within half a beam spacing of the outermost beams."""
+  s = np.sin(sensor.elevation)[::-1]  # increasing
+  b = sensor.vertical_offset[::-1]
+  mid = 0.5 * (s[1:] + s[:-1])
+  j = np.searchsorted(mid, sin_el)  # nearest ignoring the offsets
+  if sensor.vertical_offset_m:  # then with them (near points move by
+    for _ in range(NEAREST_PASSES):  # several beams), and the neighbours
+      j = np.searchsorted(mid, sin_el - b[j] / rng)
+    best = j
+    cost = np.abs(sin_el - s[j] - b[j] / rng)
+    for d in (-1, 1):
+      k = np.clip(j + d, 0, len(s) - 1)
+      c = np.abs(sin_el - s[k] - b[k] / rng)
+      best = np.where(c < cost, k, best)
+      cost = np.minimum(c, cost)
+    j = best
+  row = sensor.height - 1 - j
+  top, bottom = _spacing_margins(sensor)
+  corrected = sin_el - b[j] / rng
+  inside = ((corrected <= np.sin(sensor.elevation[0] + top)) &
+            (corrected >= np.sin(sensor.elevation[-1] - bottom)))
+  return row, inside
+
+
+def _rows(xyz, rng, in_range, ring, firing_order, sensor, source):
+  """(row, inside, ring_rows) of every point by the rule :func:`unfold`
+  names; points without a return (range 0) are inside, on row 0."""
+  n = len(xyz)
+  if firing_order:
+    ring_rows, row = rows_from_firing_order(xyz, sensor, source)
+    return row, np.ones(n, bool), ring_rows
+  returned = rng > 0
+  row, inside, ring_rows = np.zeros(n, np.int64), np.ones(n, bool), None
+  r = rng[returned]
+  sin_el = xyz[returned, 2] / r
+  if ring is not None:
+    ring = ring[returned]
+    if not np.isfinite(ring).all() or (ring != np.round(ring)).any():
+      raise DataError(f'{source}: the ring field holds values that are not integers')
+    ring_rows, on, ring_in_range = rows_from_ring_field(
+        ring.astype(np.int64), np.arcsin(np.clip(sin_el, -1, 1)), in_range[returned],
+        sensor, source)
+    # A ring without an in-range return is counted out of range, not off the beams.
+    row[returned], inside[returned] = np.maximum(on, 0), (on >= 0) | ~ring_in_range
+  else:
+    row[returned], inside[returned] = nearest_beam(sin_el, r, sensor)
+  return row, inside, ring_rows
+
+
+def _scatter_nearest(row, col, rng, xyz, use, sensor: SensorSpec):
+  """The nearest of the points ``use`` marks in each pixel: (H, W) float32
+  depth, 0 where none; (H, W, 3) its point; (H * W,) its range, inf where
+  none. A running minimum per pixel: linear time (a sort by range costs
+  100x more for 100k points)."""
+  h, w = sensor.shape
+  pixel = row[use] * w + col[use]
+  best = np.full(h * w, np.inf)
+  np.minimum.at(best, pixel, rng[use])
+  wins = rng[use] == best[pixel]
+  image = np.zeros((h * w, 3), np.float32)
+  image[pixel[wins]] = xyz[use][wins]
+  depth = np.where(np.isfinite(best), best, 0.0).astype(np.float32)
+  return depth.reshape(h, w), image.reshape(h, w, 3), best
+
+
+def _off_the_spec(xyz, inside, in_range, sensor, source) -> NotThisSensor:
+  """The refusal of a sweep whose returns mostly lie off the spec's beams or range."""
+  lo, hi = np.percentile(np.rad2deg(_elevation(xyz)), [1, 99])
+  return NotThisSensor(
+      f'{source}: {np.mean(~inside):.0%} of its returns lie off the beams and '
+      f'{np.mean(~in_range):.0%} outside the range of sensor {sensor.name!r}: '
+      f'its elevations span {lo:.1f} to {hi:.1f} degrees (1st-99th '
+      f'percentile), the spec\'s {sensor.elevation_deg[-1]:.1f} to '
+      f'{sensor.elevation_deg[0]:.1f} degrees, its range '
+      f'({sensor.min_depth}, {sensor.max_depth}) m; is this the right sensor?')
+
+
+def _too_sparse(placed: int, eligible: int, sensor: SensorSpec, source: str):
+  """A NotThisSensor where the ``eligible`` returns (on the beams and in
+  range) fill ``placed`` pixels, far fewer than a sweep of the spec would;
+  else None."""
+  norm = sensor.width / sensor.native_width
+  if eligible * norm < MIN_PLACED_EXPECTED or placed >= MIN_PLACED_OF_NORM * norm * eligible:
+    return None
+  return NotThisSensor(
+      f'{source}: not a sweep of sensor {sensor.name!r}: {placed:,} of its {eligible:,} '
+      f'returns on the beams and in range fill a pixel ({placed / eligible:.1%}), where '
+      f'a sweep of the spec fills one per kept firing ({norm:.1%}: width '
+      f'{sensor.width} of native_width {sensor.native_width}); another sensor\'s '
+      'sweep (move it out), or a spec whose beams or firings are not this data\'s')
+
+
+def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points', *,
+           firing_order: bool = False) -> Unfolded:
   """Unfolds one sweep of any spinning LiDAR into an (H, W) range image.
 
   Args:
@@ -384,10 +367,15 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
     sensor: the spec that decides rows, columns and range.
     ring: optional (N,) beam ids in the driver's own order (any order: top
       first, bottom first or interleaved): rows come from the median
-      elevation of each ring's in-range returns (never its placeholders
-      near the origin). Without it each point goes to the nearest beam's elevation
-      (with the spec's vertical offsets where it has them).
+      elevation of each ring's in-range returns (:func:`rows_from_ring_field`).
     source: names the input (a path) in errors.
+    firing_order: the points are stored in the sensor's firing order
+      (KITTI), which gives the rows (:func:`rows_from_firing_order`), and
+      are unfolded by the authors' rule: every point competes for its pixel
+      whatever its range, so one outside the spec's range leaves its pixel
+      invalid (the codec reads it as a drop), one at the origin empty.
+      Without ``ring`` or ``firing_order``: each point on its nearest beam
+      (:func:`nearest_beam`, with the spec's vertical offsets where it has them).
 
   Each image column keeps the returns in its first native column's worth
   of azimuth (SensorSpec.column_of: decimation, as the authors subsample
@@ -395,96 +383,49 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points') -> Unf
   (a VLP-16 writes steps of 0.19 and 0.20 degrees) a window can miss its
   firing: on the real VLP-16 and PandarXT16 samples 5% and 1.8% of pixels
   are empty where a firing elsewhere in their column returned
-  (benchmarks/sensors.py). Where two points fall in one pixel the nearer is
-  kept (dual returns). Points at the origin or NaN (placeholders of
-  beams without a return), outside the spec's range, or off its beams are
-  dropped and counted. A sweep whose returns mostly fall outside the spec, or
-  whose returns on its beams fill far fewer pixels than a sweep of its sensor
+  (benchmarks/sensors.py). The nearest return wins each pixel (dual
+  returns). Points at the origin or NaN (placeholders of beams without a
+  return), outside the spec's range, or off its beams are dropped and
+  counted. A sweep whose returns mostly fall outside the spec, or whose
+  returns on its beams fill far fewer pixels than a sweep of its sensor
   (below MIN_PLACED_OF_NORM of width / native_width of them: another
   sensor's beams and firings between the spec's), is refused (NotThisSensor,
   a DataError naming ``source`` and what it found against the spec).
   """
-  if isinstance(points, dict):
-    try:
-      xyz = np.stack([np.asarray(points[k], np.float64) for k in 'xyz'], 1)
-    except KeyError as e:
-      raise DataError(f'{source}: no {e} field among {sorted(points)}') from None
-  else:
-    xyz = np.asarray(points, np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] < 3:
-      raise DataError(f'{source}: expected an (N, >=3) array of points, got '
-                      f'shape {xyz.shape}')
-    xyz = xyz[:, :3]
+  xyz = check_points(points, source, finite=firing_order)
   n = len(xyz)
   if ring is not None:
+    if firing_order:
+      raise ValueError('unfold: rows from a ring field or from the firing order, not both')
     ring = np.asarray(ring)
     if ring.shape != (n,):
       raise DataError(f'{source}: {ring.size} ring ids for {n} points')
+  finite = np.isfinite(xyz).all(axis=1)
+  if not finite.all():  # NaN or inf: no return, at the origin from here on
+    xyz = np.where(finite[:, None], xyz, 0.0)
   rng = np.sqrt(np.einsum('ij,ij->i', xyz, xyz))
-  returned = np.isfinite(rng) & (rng > 0)
-  if not returned.any():
-    raise DataError(f'{source}: none of its {n} points is a return (all at '
-                    'the origin or NaN)')
-  xyz, rng = xyz[returned], rng[returned]
-  sin_el = xyz[:, 2] / rng
+  returned = rng > 0
   in_range = (rng > sensor.min_depth) & (rng < sensor.max_depth)
-  ring_rows = None
-  if ring is not None:
-    ring = ring[returned]
-    if not np.isfinite(ring).all() or (ring != np.round(ring)).any():
-      raise DataError(f'{source}: the ring field holds values that are not '
-                      'integers')
-    ring_rows, row, ring_in_range = rows_from_ring_field(
-        ring.astype(np.int64), np.arcsin(np.clip(sin_el, -1, 1)), in_range, sensor, source)
-    # A ring without an in-range return is counted out of range, not off the beams.
-    inside = (row >= 0) | ~ring_in_range
-    row = np.maximum(row, 0)
-  else:
-    row, inside = nearest_beam(sin_el, rng, sensor)
-  outside = int((~inside).sum())
-  if 1 - np.mean(inside & in_range) > MIN_INSIDE_SHARE:
-    el = np.rad2deg(np.arcsin(np.clip(sin_el, -1, 1)))
-    lo, hi = np.percentile(el, [1, 99])
-    raise NotThisSensor(
-        f'{source}: {np.mean(~inside):.0%} of its returns lie off the beams and '
-        f'{np.mean(~in_range):.0%} outside the range of sensor {sensor.name!r}: '
-        f'its elevations span {lo:.1f} to {hi:.1f} degrees (1st-99th '
-        f'percentile), the spec\'s {sensor.elevation_deg[-1]:.1f} to '
-        f'{sensor.elevation_deg[0]:.1f} degrees, its range '
-        f'({sensor.min_depth}, {sensor.max_depth}) m; is this the right sensor?')
+  row, inside, ring_rows = _rows(xyz, rng, in_range, ring, firing_order, sensor, source)
+  eligible = inside & in_range
+  if returned.any() and 1 - np.mean(eligible[returned]) > MIN_INSIDE_SHARE:
+    raise _off_the_spec(xyz[returned], inside[returned], in_range[returned], sensor, source)
   azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
   if sensor.azimuth_offset_deg:
     azimuth = azimuth - sensor.azimuth_offset[row]
   col, kept = sensor.column_of(azimuth)
-  use = inside & in_range & kept
-  # The nearest return of each pixel: a running minimum per pixel (linear
-  # time; a sort by range costs 100x more for 100k points).
-  h, w = sensor.shape
-  pixel = row[use] * w + col[use]
-  best = np.full(h * w, np.inf)
-  np.minimum.at(best, pixel, rng[use])
-  wins = rng[use] == best[pixel]
-  image = np.zeros((h * w, 3), np.float32)
-  image[pixel[wins]] = xyz[use][wins]
-  seen = np.isfinite(best)
-  depth = np.where(seen, best, 0.0).astype(np.float32).reshape(h, w)
-  placed = int(seen.sum())
-  eligible = int((inside & in_range).sum())
-  norm = sensor.width / sensor.native_width
-  if (eligible * norm >= MIN_PLACED_EXPECTED and
-      placed < MIN_PLACED_OF_NORM * norm * eligible):
-    raise NotThisSensor(
-        f'{source}: not a sweep of sensor {sensor.name!r}: {placed:,} of its {eligible:,} '
-        f'returns on the beams and in range fill a pixel ({placed / eligible:.1%}), where '
-        f'a sweep of the spec fills one per kept firing ({norm:.1%}: width '
-        f'{sensor.width} of native_width {sensor.native_width}); another sensor\'s '
-        'sweep (move it out), or a spec whose beams or firings are not this data\'s')
-  image = image.reshape(h, w, 3)
+  depth, image, best = _scatter_nearest(row, col, rng, xyz,
+                                        kept if firing_order else eligible & kept, sensor)
+  placed = int(((best > sensor.min_depth) & (best < sensor.max_depth)).sum())
+  refusal = _too_sparse(placed, int(eligible.sum()), sensor, source)
+  if refusal:
+    raise refusal
   return Unfolded(
       depth=depth, xyz=image, points=n, no_return=int(n - returned.sum()),
-      out_of_range=int((inside & ~in_range).sum()), off_elevation=outside,
-      between_columns=int((inside & in_range & ~kept).sum()),
-      hidden=int(use.sum()) - placed, placed=placed, ring_rows=ring_rows)
+      out_of_range=int((returned & inside & ~in_range).sum()),
+      off_elevation=int((returned & ~inside).sum()),
+      between_columns=int((eligible & ~kept).sum()),
+      hidden=int((eligible & kept).sum()) - placed, placed=placed, ring_rows=ring_rows)
 
 
 def to_range_image(points, sensor: SensorSpec, ring=None,
@@ -496,8 +437,6 @@ def to_range_image(points, sensor: SensorSpec, ring=None,
 
 
 # ----------------------------------------------------------------------------
-
-
 
 
 class AngleAccumulator:
