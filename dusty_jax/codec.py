@@ -4,7 +4,9 @@ Maps metric depth d to ``x`` in [-1, 1]: 1/d, with (0.9, 120) m mapped
 linearly so that 120 m is -1 and 0.9 m is +1. A point-drop is the constant
 ALPHA = -1. Valid means min_depth < d < max_depth strictly, so a valid pixel
 always encodes strictly above ALPHA. :func:`to_points` back-projects depth
-with a per-pixel angle table (data/unfolding.py estimates one).
+with a per-pixel angle table (data/unfolding.py estimates one). Every
+function takes the sensor as a SensorSpec, resolved from a name where the
+program starts, and refuses anything else with a TypeError.
 
 jnp throughout: works inside jit and on numpy inputs (``np.asarray`` the
 result for numpy).
@@ -16,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dusty_jax import errors
-from dusty_jax.sensor import SensorSpec, get_sensor
+from dusty_jax.sensor import SensorSpec, check_spec
 
 ALPHA = -1.0  # the point-drop constant in normalised inverse depth.
 
@@ -39,27 +41,15 @@ def check_precision(x, what: str = 'normalised inverse depth'):
   return x
 
 
-def as_sensor(sensor) -> SensorSpec:
-  """A SensorSpec, or a preset's name ('kitti', 'mpo') as one; anything
-  else is refused with what to pass."""
-  if isinstance(sensor, str):
-    return get_sensor(sensor)
-  if not hasattr(sensor, 'min_depth'):  # a SensorSpec, or one of its kind
-    raise TypeError(f'sensor: expected a SensorSpec (params.sensor, '
-                    f"dusty_jax.get_sensor('kitti')) or a preset name, got "
-                    f'{type(sensor).__name__}')
-  return sensor
-
-
 def valid_depth(depth, sensor: SensorSpec):
   """True where depth is finite and strictly inside the sensor's range."""
-  sensor = as_sensor(sensor)
+  check_spec(sensor)
   depth = jnp.asarray(depth)
   return jnp.isfinite(depth) & (depth > sensor.min_depth) & (
       depth < sensor.max_depth)
 
 
-def _inv_bounds(sensor):
+def _inv_bounds(sensor: SensorSpec):
   return 1.0 / sensor.max_depth, 1.0 / sensor.min_depth
 
 
@@ -68,9 +58,9 @@ def encode(depth, sensor: SensorSpec):
 
   Zero, negative, NaN, inf and out-of-range depths become ALPHA, never NaN.
   Any float dtype is cast to float32 first; the result is float32.
-  ``sensor``: a SensorSpec (``params.sensor``) or a preset name ('kitti').
+  ``sensor``: a SensorSpec (``params.sensor``, ``sensor.PRESETS['kitti']``).
   """
-  sensor = as_sensor(sensor)
+  check_spec(sensor)
   depth = jnp.asarray(depth, jnp.float32)
   valid = valid_depth(depth, sensor)
   lo, hi = _inv_bounds(sensor)
@@ -90,7 +80,7 @@ def decode(x, sensor: SensorSpec, tolerance: float = 0.0):
   only exactly ALPHA is a drop). Dropped pixels get depth 0. NaN counts as
   dropped. ``x`` in float16 or bfloat16 is refused (:func:`check_precision`).
   """
-  sensor = as_sensor(sensor)
+  check_spec(sensor)
   x = jnp.asarray(check_precision(x, 'x'), jnp.float32)
   valid = jnp.isfinite(x) & ((x - ALPHA) / 2.0 > tolerance)
   lo, hi = _inv_bounds(sensor)
@@ -105,7 +95,7 @@ def complete_depth(x_tilde, sensor: SensorSpec):
   Unlike :func:`decode`, nothing is a drop: x_tilde = ALPHA is the far end
   of the range (max_depth), not a missing point.
   """
-  sensor = as_sensor(sensor)
+  check_spec(sensor)
   x = jnp.clip(jnp.asarray(x_tilde, jnp.float32), ALPHA, 1.0)
   lo, hi = _inv_bounds(sensor)
   return 1.0 / ((x + 1.0) / 2.0 * (hi - lo) + lo)

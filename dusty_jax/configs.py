@@ -29,8 +29,6 @@ def default() -> ml_collections.ConfigDict:
   c.sensor.preset = 'kitti'      # a name of sensor.PRESETS: kitti (HDL-64E 64x256),
                                  # mpo (HDL-32E 32x256), vlp16, hdl32e, hdl64e, os1-64, os1-128
   c.sensor.file = ''             # a sensor spec JSON file (sensor.load); wins over preset
-  c.sensor.spec = ''             # the spec a run trained with, as JSON: written by the
-                                 # trainer into the run's config.json (wins over both)
   c.sensor.height = 0            # with preset '', a tiny sensor of this size
   c.sensor.width = 0             # 0: the preset's width
 
@@ -112,7 +110,8 @@ class ConfigError(errors.UserError, ValueError):
 
 # Fields that decide what a checkpoint holds: a run may not resume with
 # other values (the saved arrays would not fit, or would mean something else).
-ARCHITECTURE = ('model', 'latent_dim', 'ch_base', 'ch_max', 'eqlr', 'sensor', 'drops')
+# The sensor too, compared as the spec the run recorded (runs.check_resumable).
+ARCHITECTURE = ('model', 'latent_dim', 'ch_base', 'ch_max', 'eqlr', 'drops')
 
 
 def _missing(c, want, prefix='') -> str | None:
@@ -127,7 +126,7 @@ def _missing(c, want, prefix='') -> str | None:
   return None
 
 
-# The steps after training (trainer.AFTER_TRAINING runs them):
+# The steps after training (after_training.STEPS, which the trainer runs):
 #   levels: fits the EMA generator's drop levels, where drops.depth_levels;
 #   final_evaluation: the short evaluation of final_eval, where it has scans.
 AFTER_TRAINING = ('levels', 'final_evaluation')
@@ -149,32 +148,45 @@ def _finite(v) -> bool:
   return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def validate(c) -> None:
+def validate(c) -> sensor_lib.SensorSpec:
   """Checks a config before any work; raises ConfigError naming the field
   (the augmentation fields: augment.check_config, beside the names it
   checks, since loading a generator reads configs and needs no augment.py).
   The one check: what is built from a valid config reads its fields as
-  they are (every field of :func:`default` is present)."""
+  they are (every field of :func:`default` is present). Returns the sensor
+  the config names, resolved (sensor.from_config): the trainer's start
+  calls this once, and everything below it takes that SensorSpec."""
   missing = _missing(c, default())
   if missing:
     raise ConfigError(f'config field {missing} is missing: build experiment configs on '
                       'dusty_jax.configs.default() and override what differs')
-  def need(ok, field, why):
-    if not ok:
-      raise ConfigError(f'config field {field}={c.get(field)!r}: {why}')
-  need(c.model in models.VARIANTS, 'model',
-       f'known models are {", ".join(models.VARIANTS)}')
+  _need(c, c.model in models.VARIANTS, 'model',
+        f'known models are {", ".join(models.VARIANTS)}')
+  _check_counts(c)
+  _check_optimiser(c)
+  sensor = _sensor(c)
+  _check_drops(c)
+  return sensor
+
+
+def _need(c, ok, field, why):
+  if not ok:
+    raise ConfigError(f'config field {field}={c.get(field)!r}: {why}')
+
+
+def _check_counts(c):
+  """The whole-number fields: steps, sizes, logging, checkpoints, final_eval."""
   for f in ('batch_size', 'num_steps', 'log_every', 'image_every',
             'checkpoint_every', 'keep_checkpoints', 'latent_dim', 'ch_base',
             'ch_max', 'num_images'):
-    need(isinstance(c[f], int) and 1 <= c[f] <= errors.INT32_MAX, f,
-         'must be a whole number >= 1 (and <= 2**31 - 1, an int32 once compiled)')
-  need(isinstance(c.keep_every, int) and c.keep_every >= 0, 'keep_every',
-       'must be a whole number >= 0 (0: keep the last keep_checkpoints only)')
+    _need(c, isinstance(c[f], int) and 1 <= c[f] <= errors.INT32_MAX, f,
+          'must be a whole number >= 1 (and <= 2**31 - 1, an int32 once compiled)')
+  _need(c, isinstance(c.keep_every, int) and c.keep_every >= 0, 'keep_every',
+        'must be a whole number >= 0 (0: keep the last keep_checkpoints only)')
   minutes = c.checkpoint_minutes
-  need(isinstance(minutes, (int, float)) and not isinstance(minutes, bool)
-       and 0 <= minutes < float('inf'), 'checkpoint_minutes',
-       'must be a number of minutes >= 0 (0: save by steps only)')
+  _need(c, isinstance(minutes, (int, float)) and not isinstance(minutes, bool)
+        and 0 <= minutes < float('inf'), 'checkpoint_minutes',
+        'must be a number of minutes >= 0 (0: save by steps only)')
   for f in ('num_synthesis', 'points', 'num_invert', 'invert_steps'):
     v = c.final_eval[f]
     if not (isinstance(v, int) and v >= (1 if f in ('points', 'invert_steps') else 0)):
@@ -184,30 +196,39 @@ def validate(c) -> None:
     raise ConfigError(f'config field data.memory_mb={c.data.memory_mb!r}: must be a whole '
                       'number of MiB >= 0 (0: always read the training split from its file)')
   unknown = [n for n in after_training(c) if n not in AFTER_TRAINING]
-  need(not unknown, 'after_training', unknown and f'{unknown[0]!r} is no step after '
-       f"training; give a comma-separated list of {', '.join(AFTER_TRAINING)} ('' for none)")
-  need(_finite(c.lr) and c.lr > 0, 'lr', 'the learning rate must be a finite number > 0')
-  need(0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
-       else 'beta2', 'Adam betas must lie in [0, 1)')
-  need(_finite(c.adam_eps) and c.adam_eps > 0, 'adam_eps', 'must be a finite number > 0')
-  need(_finite(c.r1_gamma) and c.r1_gamma >= 0, 'r1_gamma', 'must be a finite number >= 0')
-  need(isinstance(c.r1_every, int) and c.r1_every >= 1, 'r1_every',
-       'must be a whole number >= 1 (1: every step)')
+  _need(c, not unknown, 'after_training', unknown and f'{unknown[0]!r} is no step after '
+        f"training; give a comma-separated list of {', '.join(AFTER_TRAINING)} ('' for none)")
+
+
+def _check_optimiser(c):
+  """The optimisation's numbers (Adam, R1, tau, EMA) and the networks' options."""
+  _need(c, _finite(c.lr) and c.lr > 0, 'lr', 'the learning rate must be a finite number > 0')
+  _need(c, 0 <= c.beta1 < 1 and 0 <= c.beta2 < 1, 'beta1' if not 0 <= c.beta1 < 1
+        else 'beta2', 'Adam betas must lie in [0, 1)')
+  _need(c, _finite(c.adam_eps) and c.adam_eps > 0, 'adam_eps', 'must be a finite number > 0')
+  _need(c, _finite(c.r1_gamma) and c.r1_gamma >= 0, 'r1_gamma',
+        'must be a finite number >= 0')
+  _need(c, isinstance(c.r1_every, int) and c.r1_every >= 1, 'r1_every',
+        'must be a whole number >= 1 (1: every step)')
   lo, hi = gumbel.TAU_RANGE
-  need(_finite(c.tau) and lo <= c.tau <= hi, 'tau', f'the Gumbel temperature must lie in '
-       f'[{lo:g}, {hi:g}]: beyond, its straight-through gradient vanishes or stops '
-       'depending on the logits (gumbel.TAU_RANGE)')
+  _need(c, _finite(c.tau) and lo <= c.tau <= hi, 'tau', f'the Gumbel temperature must lie '
+        f'in [{lo:g}, {hi:g}]: beyond, its straight-through gradient vanishes or stops '
+        'depending on the logits (gumbel.TAU_RANGE)')
   # Beyond this half-life a step's weight in the EMA, 1 - 0.5 ** (batch /
   # half-life), is below float32's resolution near 1 (2**-24): it never moves.
   frozen = c.batch_size * math.log(2) * 2 ** 24 / 1000
-  need(_finite(c.ema_halflife_kimg) and 0 <= c.ema_halflife_kimg <= frozen,
-       'ema_halflife_kimg', f'must lie in [0, {frozen:.4g}] for batch_size '
-       f'{c.batch_size} (0: the EMA is the generator; longer: float32 leaves it at init)')
-  need(_finite(c.ema_rampup) and c.ema_rampup >= 0, 'ema_rampup',
-       'must be a finite number >= 0 (0: no ramp-up)')
-  need(c.impl in IMPLS, 'impl', "must be '' (per backend: matmul on CPU, xla elsewhere), "
-       "'matmul' or 'xla'")
-  need(c.eqlr in models.EQLR, 'eqlr', f"must be one of {', '.join(map(repr, models.EQLR))}")
+  _need(c, _finite(c.ema_halflife_kimg) and 0 <= c.ema_halflife_kimg <= frozen,
+        'ema_halflife_kimg', f'must lie in [0, {frozen:.4g}] for batch_size '
+        f'{c.batch_size} (0: the EMA is the generator; longer: float32 leaves it at init)')
+  _need(c, _finite(c.ema_rampup) and c.ema_rampup >= 0, 'ema_rampup',
+        'must be a finite number >= 0 (0: no ramp-up)')
+  _need(c, c.impl in IMPLS, 'impl', "must be '' (per backend: matmul on CPU, xla "
+        "elsewhere), 'matmul' or 'xla'")
+  _need(c, c.eqlr in models.EQLR, 'eqlr', f"must be one of {', '.join(map(repr, models.EQLR))}")
+
+
+def _sensor(c) -> sensor_lib.SensorSpec:
+  """The config's sensor, resolved and checked against the networks' shapes."""
   preset, file = c.sensor.preset, c.sensor.get('file')
   if preset and not file and preset not in sensor_lib.PRESETS:
     raise ConfigError(f'config field sensor.preset={preset!r}: known presets are '
@@ -224,6 +245,12 @@ def validate(c) -> None:
   except ValueError as e:  # DataError too: the file, named in its message
     field = 'sensor.file' if file else 'sensor.width' if c.sensor.width else 'sensor.preset'
     raise ConfigError(f'config field {field}={c.sensor[field.split(".")[1]]!r}: {e}') from None
+  return spec
+
+
+def _check_drops(c):
+  """The point-drop options: weights >= 0, and none acting on a model with no
+  measurability."""
   d = c.drops
   def need_drop(ok, field, why):
     if not ok:
@@ -257,8 +284,6 @@ def architecture_diff(old, new) -> dict:
     a, b = old.get(f), new.get(f)
     if f == 'drops':  # only these change what the networks' arrays are.
       a, b = (bool(o.drops.ring_bias) for o in (old, new))
-    if f == 'sensor':  # the specs they resolve to, not how they name them
-      a, b = (sensor_lib.from_config(o.sensor).to_dict() for o in (old, new))
     if a != b:
       out[f] = (a, b)
   return out
@@ -272,9 +297,8 @@ def save(workdir: str, config):
     f.write(config.to_json(indent=2))
 
 
-# A run config holds default()'s fields and what the trainer adds:
 # What a run adds to its config: the devices it trained on
-# (trainer._as_trained); a converted .pth's source and step (authors.load).
+# (runs.as_trained); a converted .pth's source and step (authors.load).
 RUN_FIELDS = ('trained_on', 'source_checkpoint', 'source_step')
 # A field added to default() takes, in a run from before it, its default,
 # which does what such runs did (the rule for adding one). A run config
@@ -326,6 +350,10 @@ def load(workdir: str) -> ml_collections.ConfigDict:
   if missing:
     raise ValueError(f'{path}: not a dusty_jax run config (no {missing[0]!r} field), so '
                      f'{workdir} is no training run of this library')
+  # Runs of 2026-11-27 and -28 also kept their sensor's spec in the config
+  # (sensor.spec); generator.json, written beside it, holds it (runs.py).
+  if isinstance(saved.get('sensor'), dict):
+    saved['sensor'].pop('spec', None)
   want = default()
   unknown = _unknown({k: v for k, v in saved.items() if k not in RUN_FIELDS}, want)
   gap = next((f for f in CHANGED_DEFAULTS if f not in saved), None)

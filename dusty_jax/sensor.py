@@ -394,7 +394,11 @@ PRESETS: dict[str, SensorSpec] = {
 
 
 def get_sensor(name: str) -> SensorSpec:
-  """A preset by name (:data:`PRESETS`), or a spec file's path (:func:`load`)."""
+  """A preset by name (:data:`PRESETS`), or a spec file's path (:func:`load`).
+
+  A name becomes a spec here, where a program starts (a command's flags, the
+  trainer's config: :func:`from_config`); everything below takes the spec
+  (:func:`check_spec`)."""
   if name in PRESETS:
     return PRESETS[name]
   if name.endswith('.json') or os.path.sep in name:
@@ -402,6 +406,17 @@ def get_sensor(name: str) -> SensorSpec:
   raise ValueError(
       f'unknown sensor {name!r}; known presets: {sorted(PRESETS)}, or the path '
       'of a sensor spec JSON file')
+
+
+def check_spec(sensor, what: str = 'sensor') -> SensorSpec:
+  """``sensor`` as it is, if a SensorSpec; else a TypeError saying how to
+  make one (a name is resolved where a program starts: :func:`get_sensor`)."""
+  if not isinstance(sensor, SensorSpec):
+    got = f'{type(sensor).__name__} {sensor!r}' if isinstance(sensor, str) else \
+        type(sensor).__name__
+    raise TypeError(f'{what}: expected a SensorSpec (params.sensor, or '
+                    f"dusty_jax.get_sensor('kitti') for a preset or a spec file), got {got}")
+  return sensor
 
 
 def tiny_sensor(height: int = 16, width: int = 64) -> SensorSpec:
@@ -424,13 +439,11 @@ def check_angles(angles, shape, source: str = '', finite: bool = False):
 
 
 def from_config(cfg) -> SensorSpec:
-  """Builds a SensorSpec from a config's ``sensor`` ConfigDict: its recorded
-  ``spec`` (a run's own, so a copy of the run needs no file), else its
-  ``file``, else its ``preset``, else a tiny sensor of ``height x width``;
-  a nonzero ``width`` then sets the columns."""
-  if cfg.get('spec'):
-    spec = SensorSpec.from_dict(json.loads(cfg.spec), source='config sensor.spec')
-  elif cfg.get('file'):
+  """The SensorSpec a config's ``sensor`` ConfigDict names: its ``file``,
+  else its ``preset``, else a tiny sensor of ``height x width``; a nonzero
+  ``width`` then sets the columns. Read once, where training starts
+  (configs.validate); a run records the spec in its generator.json."""
+  if cfg.get('file'):
     spec = load(os.path.expanduser(cfg.file))
   elif cfg.get('preset'):
     spec = get_sensor(cfg.preset)
@@ -443,8 +456,6 @@ def from_config(cfg) -> SensorSpec:
 
 def source_of(cfg) -> str:
   """Where :func:`from_config` takes a config's spec from, in words."""
-  if cfg.get('spec'):
-    return 'the spec the run recorded (sensor.spec)'
   if cfg.get('file'):
     return f'sensor.file={cfg["file"]}'
   if cfg.get('preset'):

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 import sys
 import time
@@ -36,8 +35,8 @@ import optax
 import tqdm
 from jax import lax
 
-from dusty_jax import (augment, checkpoint, codec, configs, drops, errors, evaluation, generator,
-                       levels, losses, models, parallel, sampling, writers)
+from dusty_jax import (after_training, augment, checkpoint, codec, configs, drops, errors,
+                       generator, losses, models, parallel, runs, sampling, writers)
 from dusty_jax import sensor as sensor_lib
 from dusty_jax.data import arrays, pipeline
 from dusty_jax.parallel import AXIS
@@ -322,18 +321,9 @@ def init_run(workdir: str, config, params) -> None:
   levels fitted after training (levels.py) go to the run's levels file, at
   step 0, not into the trained weights."""
   setup = make_setup(config, params.sensor)
-  state = init_state(setup, jax.random.key(config.seed))
-  variables, fitted = params.variables, None
-  if params.settings.depth_levels:
-    fitted = variables['params']['depth_levels']
-    variables = {**variables, 'params': {k: v for k, v in variables['params'].items()
-                                         if k != 'depth_levels'}}
-  state = state.replace(g_params=variables, ema_params=variables)
-  configs.save(workdir, config)
-  if fitted is not None:
-    levels.save(workdir, fitted, 0)
-  generator.save_spec(workdir, params.sensor, setup.settings, params.angles,
-                      params.tolerance)
+  variables = runs.record_given(workdir, config, params, setup.settings)
+  state = init_state(setup, jax.random.key(config.seed)).replace(g_params=variables,
+                                                                 ema_params=variables)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
   checkpoint.save(mngr, 0, state, force=True)
   checkpoint.wait(mngr)
@@ -385,59 +375,10 @@ def _time_to_save(config, saved_at: float, log_now: bool) -> bool:
   return log_now and parallel.all_texts('save', 'yes' if due else '')[0] == 'yes'
 
 
-def _check_resumable(workdir: str, config):
-  """Refuses, before anything is written, to resume a run whose checkpoints
-  were made by another architecture."""
-  if not os.path.isfile(os.path.join(workdir, configs.FILE)):
-    return
-  run = configs.load(workdir)
-  diff = configs.architecture_diff(run, config)
-  if diff:
-    fields = '; '.join(_sensor_diff(run, config) if k == 'sensor' else
-                       f'{k}: run has {a!r}, config has {b!r}' for k, (a, b) in diff.items())
-    raise configs.ConfigError(
-        f'{workdir} holds a run of another architecture ({fields}); its checkpoints '
-        'cannot be resumed with this config. Use another --workdir, or the '
-        "run's own values.")
-
-
-def _sensor_diff(run, config) -> str:
-  """The first field in which a run's sensor and a config's differ, and
-  where the run took its spec from."""
-  a, b = (sensor_lib.from_config(c.sensor) for c in (run, config))
-  diff = sensor_lib.first_difference(a, b, ('run', 'config'), sensor_lib.DATA_FIELDS +
-                                     ('mount_height', 'name'))
-  trained = sensor_lib.source_of(dict(run.sensor, spec=''))
-  return (f'sensor.{diff or "spec"} (the run trained with {trained}; the config gives '
-          f'{sensor_lib.source_of(config.sensor)})')
-
-
-def _peer_lost(workdir: str, reason: str) -> str:
-  """What a process whose peer is lost says (parallel.PeerWatch)."""
-  steps = checkpoint.saved_steps(workdir)
-  n = jax.process_count()
-  then = (f'the last checkpoint is step {steps[-1]} in {workdir}; rerun all {n} '
-          'processes to resume from it' if steps else
-          f'no checkpoint was saved yet; rerun all {n} processes to start afresh')
-  return f'a process of this run was lost ({reason}); {then}'
-
-
-def _as_trained(config):
-  """The config as a run directory keeps it: with the devices it trained on
-  (another device count trains to float rounding of this run)."""
-  saved = config.copy_and_resolve_references()
-  saved.unlock()
-  # The sensor itself, so a copy of the run needs no spec file.
-  saved.sensor.spec = json.dumps(sensor_lib.from_config(config.sensor).to_dict())
-  saved.trained_on = {'devices': jax.device_count(), 'processes': jax.process_count(),
-                      'platform': jax.default_backend()}
-  return saved
-
-
 def train_and_evaluate(config, workdir: str, log=print,
                        peer_timeout: float = parallel.PEER_TIMEOUT_S) -> TrainState:
   """Trains from scratch or resumes from the latest checkpoint in ``workdir``,
-  then runs the steps ``config.after_training`` names (AFTER_TRAINING), in
+  then runs the steps ``config.after_training`` names (after_training.py), in
   order.
 
   Holds ``workdir`` alone while it runs (parallel.hold_workdir): a second
@@ -445,14 +386,14 @@ def train_and_evaluate(config, workdir: str, log=print,
   peer is lost ends within about ``peer_timeout`` seconds, saying which
   checkpoint a rerun of all processes resumes from (parallel.PeerWatch).
   """
-  configs.validate(config)
+  sensor = configs.validate(config)  # the one place the config's sensor is read
   augment.check_config(config)
-  watch = parallel.PeerWatch(peer_timeout, functools.partial(_peer_lost, workdir))
+  watch = parallel.PeerWatch(peer_timeout, functools.partial(runs.peer_lost, workdir))
   try:
     with parallel.hold_workdir(workdir):
-      state, run = _train(config, workdir, log)
+      state, run = _train(config, sensor, workdir, log)
       for name in configs.after_training(config):
-        run = AFTER_TRAINING[name](run)
+        run = after_training.STEPS[name](run)
   except BaseException as e:
     watch.close()
     if (any(parallel.is_peer_loss(x) for x in checkpoint.causes(e))
@@ -499,10 +440,21 @@ class _Progress:
                          g=f'{mean["loss_g"]:.3f}', drop=f'{mean["drop_rate"]:.2f}')
 
 
-def _start(config, workdir: str, setup: Setup, mesh, key, log):
+@dataclasses.dataclass(frozen=True)
+class Start:
+  """What a run starts from (:func:`_start`)."""
+  data_dir: str  # the prepared dataset
+  data: pipeline.TrainingData  # its training split
+  angles: np.ndarray  # (2, H, W), the dataset's
+  batches: pipeline.Batches
+  mngr: Any  # the run's checkpoint manager
+  state: TrainState  # placed on the mesh
+  step: int  # the first step to train
+
+
+def _start(config, workdir: str, setup: Setup, mesh, key, log) -> Start:
   """The training data, the run's files, and the state to start from: the
-  latest checkpoint in ``workdir`` or, with none, fresh networks (``key``).
-  Returns (data_dir, data, angles, batches, manager, state, start step)."""
+  latest checkpoint in ``workdir`` or, with none, fresh networks (``key``)."""
   sensor, is_main = setup.sensor, jax.process_index() == 0
   data_dir = pipeline.dataset_dir(config, sensor, log=log)
   # The data checked whole before the run writes anything of its own.
@@ -515,13 +467,7 @@ def _start(config, workdir: str, setup: Setup, mesh, key, log):
   batches = pipeline.Batches(data.depth, sensor, config.batch_size, config.seed,
                              jax.process_index(), jax.process_count())
   if is_main:
-    configs.save(workdir, _as_trained(config))
-    # What a trained generator is, saved before any checkpoint: loading it
-    # later needs neither this trainer nor the dataset (generator.py).
-    tolerance = config.tolerance
-    if os.path.isfile(os.path.join(workdir, generator.SPEC_FILE)):
-      tolerance = generator.read_spec(workdir)[2]  # may have been tuned since.
-    generator.save_spec(workdir, sensor, setup.settings, angles, tolerance)
+    runs.record(workdir, config, sensor, setup.settings, angles)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints,
                             keep_every=config.keep_every, cleanup_tmp=True,
                             log=log if is_main else None)
@@ -533,21 +479,21 @@ def _start(config, workdir: str, setup: Setup, mesh, key, log):
                                               log=log, set_aside=True)
   if restored is not None:
     log(f'resumed from step {restored} in {workdir}')
-  start = 0 if restored is None else int(restored)
-  return data_dir, data, angles, batches, mngr, state, start
+  return Start(data_dir, data, angles, batches, mngr, state,
+               0 if restored is None else int(restored))
 
 
-def _train(config, workdir: str, log):
+def _train(config, sensor: SensorSpec, workdir: str, log):
   """The loop: steps, logging and checkpoints. Returns (the final state, the
   run as the steps after training see it)."""
-  _check_resumable(workdir, config)
+  runs.check_resumable(workdir, config, sensor)
   mesh = parallel.data_mesh()
   parallel.local_batch_size(config.batch_size, mesh)  # checks divisibility
   is_main = jax.process_index() == 0
-  setup = make_setup(config, sensor_lib.from_config(config.sensor))
+  setup = make_setup(config, sensor)
   k_init, k_step, k_img = jax.random.split(jax.random.key(config.seed), 3)
-  data_dir, data, angles, batches, mngr, state, start = _start(config, workdir, setup,
-                                                               mesh, k_init, log)
+  s = _start(config, workdir, setup, mesh, k_init, log)
+  data, mngr, state, start = s.data, s.mngr, s.state, s.step
   step = parallel.data_parallel(step_fn(setup), mesh)
   progress = _Progress(config, workdir, start, is_main)
   if data.switched:  # allowed by data.allow_changed; data.json says from what
@@ -559,7 +505,7 @@ def _train(config, workdir: str, log):
   saved_at = time.monotonic()  # of the last checkpoint, for checkpoint_minutes
   try:
     for i in range(start, config.num_steps):
-      state, metrics = step(state, parallel.shard_batch(batches(i), mesh), k_step)
+      state, metrics = step(state, parallel.shard_batch(s.batches(i), mesh), k_step)
       done = i + 1
       progress.pending.append((done, metrics))
       # The first step's losses too: a newcomer sees numbers at once.
@@ -577,14 +523,14 @@ def _train(config, workdir: str, log):
         saved_at = time.monotonic()
       if is_main and (done % config.image_every == 0 or done == config.num_steps):
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
-                     generator_params(setup, state.ema_params, angles), z_img,
+                     generator_params(setup, state.ema_params, s.angles), z_img,
                      jax.random.key(0))
       progress.bar.update()
     finished = True
   except KeyboardInterrupt:
     progress.bar.close()
     checkpoint.wait(mngr)
-    raise _interrupted(done, mngr.latest_step()) from None
+    raise runs.interrupted(done, mngr.latest_step()) from None
   finally:
     progress.bar.close()
     try:
@@ -596,81 +542,6 @@ def _train(config, workdir: str, log):
       # A second failure (the disk that failed a checkpoint also fails the
       # metrics) must not replace the one already on its way.
       progress.writer.close(quiet=not finished)
-  ema = generator_params(setup, parallel.to_host(state.ema_params), angles)
-  return state, Trained(config=config, workdir=workdir, step=done, generator=ema,
-                        data_dir=data_dir, depth=data.depth, log=log)
-
-
-def _interrupted(done: int, last) -> errors.Interrupted:
-  """What Ctrl-C at step ``done`` says, the last checkpoint being ``last``."""
-  return errors.Interrupted(
-      f'interrupted at step {done}; ' +
-      (f'the last checkpoint is step {last}; rerun the same command to resume'
-       if last is not None else
-       'no checkpoint was saved yet; rerun the same command to start afresh'))
-
-
-# ----------------------------------------------------------------------------
-# After training: named steps that config.after_training lists (as
-# big_vision's config names its evaluators), run in order by
-# train_and_evaluate. Each takes the finished run and returns it, its
-# generator changed where the step changes it.
-# ----------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class Trained:
-  """A finished training, as the steps after it see it."""
-  config: Any
-  workdir: str
-  step: int  # the last step trained
-  generator: generator.GeneratorParams  # the EMA generator, on the host
-  data_dir: str  # the prepared dataset
-  depth: Any  # its training split (N, H, W), metric depth
-  log: Any
-
-
-def fit_drop_levels(run: Trained) -> Trained:
-  """'levels': where ``drops.depth_levels`` is set, the EMA generator's drop
-  levels per (ring, depth) cell fitted to inversions of training scans
-  (evaluation.fit_levels) and written to the run (levels.FILE, which loading
-  the run applies). A finished run started again reads the ones it wrote."""
-  if not run.config.drops.depth_levels:
-    return run
-  path = os.path.join(run.workdir, levels.FILE)
-  kept = levels.load(run.workdir)
-  if kept is not None and kept[1] == run.step:
-    return dataclasses.replace(run, generator=levels.with_levels(run.generator, kept[0], path))
-  # Every process fits the same levels (same inversions); one writes.
-  is_main = jax.process_index() == 0
-  if is_main:
-    run.log(f'fitting drop levels per (ring, depth) cell to inversions of '
-            f'{min(len(run.depth), evaluation.LEVEL_SCANS)} training scans')
-  fitted = evaluation.fit_levels(run.generator, run.depth, progress=is_main)
-  if is_main:
-    levels.save(run.workdir, fitted.variables['params']['depth_levels'], run.step)
-    run.log(f'drop levels written: {levels.FILE} (applied when step {run.step} is loaded)')
-  return dataclasses.replace(run, generator=fitted)
-
-
-def final_evaluation(run: Trained) -> Trained:
-  """'final_evaluation': where ``final_eval`` has scans, a short evaluation
-  on the test split (evaluation.after_training), once per run."""
-  fe = run.config.final_eval
-  if not (fe.num_synthesis or fe.num_invert) or os.path.isfile(
-      os.path.join(run.workdir, evaluation.AFTER_TRAINING + '.json')):
-    return run
-  if jax.process_count() > 1:  # the others would wait for process 0 at JAX's exit
-    if jax.process_index() == 0:
-      run.log(f'final_eval is left to one process: python -m dusty_jax.tools.evaluate '
-              f'--workdir {run.workdir}')
-    return run
-  run.log('short evaluation on the test split (config final_eval)')
-  run.log(evaluation.summary(evaluation.after_training(
-      run.generator, run.data_dir, run.workdir, num_synthesis=fe.num_synthesis,
-      points=fe.points, num_invert=fe.num_invert, invert_steps=fe.invert_steps)))
-  return run
-
-
-# config.after_training's names (configs.AFTER_TRAINING) and their steps.
-AFTER_TRAINING = {'levels': fit_drop_levels, 'final_evaluation': final_evaluation}
+  ema = generator_params(setup, parallel.to_host(state.ema_params), s.angles)
+  return state, after_training.Trained(config=config, workdir=workdir, step=done, generator=ema,
+                                       data_dir=s.data_dir, depth=data.depth, log=log)

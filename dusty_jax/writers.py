@@ -26,6 +26,7 @@ from tensorboardX import event_file_writer, summary
 from tensorboardX.proto import event_pb2
 
 from dusty_jax import codec, files
+from dusty_jax.sensor import SensorSpec, check_spec
 
 
 class MetricWriter:
@@ -220,14 +221,14 @@ class Column:
   label: str = ''
 
 
-def range_image(x, sensor) -> np.ma.MaskedArray:
+def range_image(x, sensor: SensorSpec) -> np.ma.MaskedArray:
   """(H, W) normalised inverse depth -> range in metres (the codec's
   decode), masked where nothing returned (drops, beyond range, NaN)."""
   depth, valid = codec.decode(np.asarray(x, np.float32), sensor)
   return np.ma.masked_array(np.asarray(depth), ~np.asarray(valid))
 
 
-def scan_figure(columns: Sequence[Column], sensor, row_label: str = 'scan',
+def scan_figure(columns: Sequence[Column], sensor: SensorSpec, row_label: str = 'scan',
                 title: str = ''):
   """A matplotlib Figure of range images: one row per scan, one column per
   :class:`Column`, each panel titled '<column title> (<row label> <i>)' (the
@@ -236,6 +237,7 @@ def scan_figure(columns: Sequence[Column], sensor, row_label: str = 'scan',
   metres on a log scale over ``sensor``'s range (near: red, far: blue; no
   return: black), probabilities on 0 to 1. Pass it to :func:`save_figure`,
   or read its axes."""
+  check_spec(sensor)
   # Here: matplotlib's import cost, for commands that draw a picture only.
   # Figure, not pyplot: no global state, no GUI.
   from matplotlib import colormaps, colors
@@ -252,7 +254,6 @@ def scan_figure(columns: Sequence[Column], sensor, row_label: str = 'scan',
                         + (_TITLE_INCHES if title else 0)),
                dpi=100, layout='constrained')
   axes = np.asarray(fig.subplots(rows, len(columns), squeeze=False))
-  sensor = codec.as_sensor(sensor)
   norms = {DEPTH: colors.LogNorm(sensor.min_depth, sensor.max_depth),
            PROBABILITY: colors.Normalize(0.0, 1.0)}
   cmaps = {DEPTH: colormaps['turbo_r'].with_extremes(bad='black'),

@@ -16,9 +16,8 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import cli, codec, encoder_trainer, inversion, pretrained, xla_cache
+from dusty_jax import cli, encoder_trainer, inversion, pretrained, xla_cache
 from dusty_jax.data import pipeline
-from dusty_jax.sensor import get_sensor
 from dusty_jax.tools import train_encoder
 from conftest import FAST_COMPILE
 
@@ -279,19 +278,6 @@ print(dusty_jax.invert.__module__, dusty_jax.load_checkpoint.__name__)
   assert dusty_jax.invert is inversion.invert
   with pytest.raises(AttributeError, match="no attribute 'nvert'"):
     dusty_jax.nvert  # noqa: B018
-
-
-def test_codec_takes_a_preset_name_or_says_what_it_takes():
-  depth = np.random.default_rng(0).uniform(0.5, 130, (4, 8)).astype(np.float32)
-  kitti = get_sensor('kitti')
-  np.testing.assert_array_equal(codec.encode(depth, 'kitti'), codec.encode(depth, kitti))
-  x = codec.encode(depth, kitti)
-  for a, b in zip(codec.decode(x, 'kitti'), codec.decode(x, kitti)):
-    np.testing.assert_array_equal(a, b)
-  with pytest.raises(ValueError, match=r"unknown sensor 'hdl'; known presets"):
-    codec.encode(depth, 'hdl')
-  with pytest.raises(TypeError, match=r'sensor: expected a SensorSpec.*got int'):
-    codec.encode(depth, 64)
 
 
 @pytest.fixture(scope='module')

@@ -248,7 +248,7 @@ def test_without_rosbags_one_line_says_what_to_install(tmp_path, monkeypatch):
                      r"pointcloud2: pip install 'dusty_jax\[ros\]'$"):
     next(read_sweeps(path))
   with pytest.raises(UserError, match='needs rosbags'):  # before anything is written
-    prepare.prepare('files', str(tmp_path), str(tmp_path / 'out'), sensor='vlp16')
+    prepare.prepare('files', str(tmp_path), str(tmp_path / 'out'), sensor=get_sensor('vlp16'))
   assert not (tmp_path / 'out').exists()
 
 
@@ -270,7 +270,7 @@ def test_a_recording_of_three_sweeps_prepares_into_three_scans(tmp_path, name):
   depths = [random_depth(vlp16, seed=i) for i in range(3)]
   root, out = tmp_path / 'data', str(tmp_path / 'out')
   write_recording(root / name, {'/velodyne_points': [scan_sweep(d, vlp16) for d in depths]})
-  meta = prepare.prepare('files', str(root), out, sensor='vlp16', log=lambda m: None)
+  meta = prepare.prepare('files', str(root), out, sensor=get_sensor('vlp16'), log=lambda m: None)
   assert meta['splits']['train'] == 3 and not meta['skipped']['train']
   train = arrays.load_split(out, 'train', vlp16)
   assert train.shape == (3, 16, 1024)
@@ -300,7 +300,7 @@ def test_prepare_tool_splits_recordings_by_file_and_thins_them(tmp_path, capsys)
   with pytest.raises(DataError, match=(
       rf'every scan file was skipped, nothing prepared; the first of 2: {root}/a\.bag: '
       r'2 PointCloud2 topics, /other \(1 messages\), /points \(5 messages\)')):
-    prepare.prepare('files', str(root), out, sensor='vlp16', splits=('train',),
+    prepare.prepare('files', str(root), out, sensor=get_sensor('vlp16'), splits=('train',),
                     log=lambda m: None)
   np.testing.assert_array_equal(arrays.load_split(out, 'train', vlp16), train)
 
@@ -311,6 +311,6 @@ def test_auto_estimates_from_a_recordings_sweeps(tmp_path):
   write_recording(root / 'r.bag', {'/points': [scan_sweep(random_depth(vlp16, seed=i, drop=0.05),
                                                           vlp16) for i in range(3)]})
   logs = []
-  meta = prepare.prepare('files', str(root), out, sensor='auto', log=logs.append)
+  meta = prepare.prepare('files', str(root), out, auto_sensor=True, log=logs.append)
   assert meta['splits']['train'] == 3 and meta['shape'][0] == 16
   assert any('from 3 training sweeps' in line for line in logs)

@@ -11,7 +11,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from dusty_jax import configs, sensor as sensor_lib, trainer
+from dusty_jax import configs, runs, sensor as sensor_lib, trainer
 from dusty_jax.data import arrays, estimate, points, prepare, unfolding
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import PRESETS
@@ -260,7 +260,7 @@ def test_auto_skips_an_empty_file_in_one_line(tmp_path):
   (root / '0.bin').write_bytes(b'')
   (root / 'train.txt').write_text('\n'.join(f'{i}.bin' for i in range(4)))
   out, logs = str(tmp_path / 'out'), []
-  meta = prepare.prepare('files', str(root), out, 'auto', log=logs.append)
+  meta = prepare.prepare('files', str(root), out, auto_sensor=True, log=logs.append)
   empty = f'skipped: {root / "0.bin"}: empty file'
   assert logs[0] == empty and logs.count(empty) == 2  # the estimate, then the conversion
   assert meta['splits']['train'] == 3
@@ -271,14 +271,15 @@ def _run_of(workdir, spec_file):
   """A run directory as training leaves it, trained with ``spec_file``."""
   c = tiny_config()
   c.sensor.file = spec_file
-  configs.save(workdir, trainer._as_trained(c))
+  spec = configs.validate(c)
+  runs.record(workdir, c, spec, configs.model_settings(c), spec.nominal_angles())
   open(os.path.join(workdir, 'train.lock'), 'w').close()  # (each run keeps its lock)
   return _files(workdir)
 
 
 def _files(workdir):
   """{name: contents} of a run directory, but its lock's holder."""
-  return {n: '' if n == 'train.lock' else open(os.path.join(workdir, n)).read()
+  return {n: b'' if n == 'train.lock' else open(os.path.join(workdir, n), 'rb').read()
           for n in os.listdir(workdir)}
 
 

@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from dusty_jax import configs, models, sensor as sensor_lib
+from dusty_jax import configs, generator, models, runs, sensor as sensor_lib
 from dusty_jax.data import estimate, points, prepare, simulated_lidar, unfolding
 from dusty_jax.errors import DataError
 from dusty_jax.sensor import PRESETS, SensorSpec
@@ -97,14 +97,16 @@ def test_config_takes_a_spec_file_and_a_run_records_it(tmp_path):
   sensor_lib.save(spec, path)
   c = configs.default()
   c.sensor.file = path
-  configs.validate(c)
-  assert sensor_lib.from_config(c.sensor) == spec
-  # As the trainer saves it: the spec itself, so the file may go.
-  recorded = c.copy_and_resolve_references()
-  recorded.sensor.spec = json.dumps(spec.to_dict())
+  assert configs.validate(c) == spec  # the config's sensor, resolved once
+  # As the trainer records it: the spec itself, in generator.json alone, so
+  # the file may go.
+  workdir = str(tmp_path / 'run')
+  runs.record(workdir, c, spec, configs.model_settings(c), spec.nominal_angles())
   os.remove(path)
-  assert sensor_lib.from_config(recorded.sensor) == spec
-  assert configs.architecture_diff(recorded, recorded) == {}
+  assert generator.read_spec(workdir)[0] == spec
+  saved = json.loads(open(os.path.join(workdir, configs.FILE)).read())
+  assert saved['sensor'] == c.sensor.to_dict()  # the config as given
+  assert configs.architecture_diff(configs.load(workdir), c) == {}
   c.sensor.file = path  # now missing
   with pytest.raises(configs.ConfigError, match=f'sensor.file=.*{path}: cannot read'):
     configs.validate(c)
@@ -297,7 +299,7 @@ def test_prepare_a_folder_of_files_with_a_preset_and_estimated(tmp_path):
   (root / 'train.txt').write_text('\n'.join(os.path.basename(p) for p in sorted(images)[:8]))
   (root / 'test.txt').write_text(os.path.basename(sorted(images)[8]))
   logs = []
-  meta = prepare.prepare('files', str(root), out, 'auto', log=logs.append)
+  meta = prepare.prepare('files', str(root), out, auto_sensor=True, log=logs.append)
   assert meta['splits'] == {'train': 8, 'val': 0, 'test': 1}
   estimated = sensor_lib.load(os.path.join(out, prepare.SENSOR_FILE))
   np.testing.assert_allclose(estimated.elevation_deg, spec.elevation_deg, atol=1e-3)
@@ -329,8 +331,7 @@ def test_smoke_training_and_evaluation_on_simulated_scans_of_a_preset(tmp_path, 
     result = json.load(f)
   flat = json.dumps(result)
   assert 'NaN' not in flat and 'Infinity' not in flat
-  saved = configs.load(workdir)  # the run names its sensor without any file
-  assert sensor_lib.from_config(saved.sensor) == spec
+  assert generator.read_spec(workdir)[0] == spec  # the run's record of its sensor
 
 
 @pytest.mark.parametrize('rings, width', [(16, 256), (32, 1024), (64, 2048), (128, 2048)])

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dusty_jax
-from dusty_jax import checkpoint, configs, drops, levels, parallel, trainer, writers
+from dusty_jax import after_training, checkpoint, configs, drops, levels, parallel, trainer, writers
 from conftest import FAST_COMPILE
 from event_files import read_events, scalars
 from train_helpers import STUDY, run_steps, tiny_config
@@ -560,8 +560,8 @@ def test_the_steps_after_training_run_as_the_config_lists_them(smoke_run, tmp_pa
       return dataclasses.replace(trained, step=trained.step + 1)
     return run
 
-  for name in trainer.AFTER_TRAINING:
-    monkeypatch.setitem(trainer.AFTER_TRAINING, name, step(name))
+  for name in after_training.STEPS:
+    monkeypatch.setitem(after_training.STEPS, name, step(name))
   config = config.copy_and_resolve_references()
   config.after_training = 'final_evaluation,levels'
   trainer.train_and_evaluate(config, copy, log=lambda m: None)

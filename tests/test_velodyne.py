@@ -98,7 +98,7 @@ def test_a_capture_prepares_into_its_sweeps(tmp_path):
   root, out = tmp_path / 'data', str(tmp_path / 'out')
   root.mkdir()
   write_capture(str(root / 'drive.pcap'), 7 * PACKETS_PER_TURN // 2)
-  meta = prepare.prepare('files', str(root), out, sensor='vlp16', log=lambda m: None)
+  meta = prepare.prepare('files', str(root), out, sensor=get_sensor('vlp16'), log=lambda m: None)
   assert meta['splits']['train'] == 3 and not meta['skipped']['train']
   train = np.asarray(arrays.load_split(out, 'train', vlp16))
   assert train.shape == (3, 16, 1024)
@@ -142,5 +142,5 @@ def test_without_velodyne_decoder_one_line_says_what_to_install(tmp_path, monkey
                      r"velodyne-decoder: pip install 'dusty_jax\[velodyne\]'$"):
     next(read_sweeps(path))
   with pytest.raises(UserError, match='needs velodyne-decoder'):
-    prepare.prepare('files', str(tmp_path), str(tmp_path / 'out'), sensor='vlp16')
+    prepare.prepare('files', str(tmp_path), str(tmp_path / 'out'), sensor=get_sensor('vlp16'))
   assert not os.path.exists(tmp_path / 'out')

@@ -38,7 +38,7 @@ from dusty_jax import codec, sensor as sensor_lib
 from dusty_jax.data import (arrays, estimate, identity, kitti, kitti360, mpo, nuscenes, points,
                             recordings, unfolding)
 from dusty_jax.errors import DataError
-from dusty_jax.sensor import SensorSpec, get_sensor
+from dusty_jax.sensor import SensorSpec
 
 SPLITS = ('train', 'val', 'test')
 SENSOR_FILE = arrays.SENSOR  # the spec a prepared folder was unfolded with
@@ -292,17 +292,18 @@ def estimate_sensor(paths, out: str, log=print, reader=None) -> SensorSpec:
   return fit.spec
 
 
-def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None = None,
+def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | None = None,
             splits=SPLITS, log=print, pattern: str = '*', split_seed: int = 0,
-            topic: str | None = None, every: int = 1) -> dict:
+            topic: str | None = None, every: int = 1, auto_sensor: bool = False) -> dict:
   """Prepares every split of ``dataset`` under ``root`` into ``out``.
 
-  ``sensor``: a SensorSpec, a preset's name or a spec file's path, or
-  'auto' (estimated from the training files); default the dataset's own
-  preset (DATASET_SENSOR). ``pattern``, ``split_seed``: which files of a
-  ``files`` dataset, and how they split; ``topic``, ``every``: which
-  PointCloud2 topic of its recordings, and every how many sweeps are kept
-  (:class:`Files`).
+  ``sensor``: the SensorSpec to unfold with (the command resolves a name or
+  a file, ``--sensor``); default the dataset's own preset (DATASET_SENSOR).
+  ``auto_sensor``: one estimated from the training files instead
+  (``--sensor auto``: :func:`estimate_sensor`). ``pattern``, ``split_seed``:
+  which files of a ``files`` dataset, and how they split; ``topic``,
+  ``every``: which PointCloud2 topic of its recordings, and every how many
+  sweeps are kept (:class:`Files`).
 
   Every input is checked before anything is created. ``meta.json`` then
   describes every split array in ``out``: the ones written now, and those
@@ -323,7 +324,11 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
     raise FileNotFoundError(f'{root}: no such directory')
   reader = (Files(pattern, split_seed, topic, every) if dataset == 'files' else
             READERS[dataset])
-  if dataset == 'files' and not sensor:
+  if sensor is not None:
+    sensor_lib.check_spec(sensor)
+    if auto_sensor:
+      raise ValueError('prepare: give a sensor or auto_sensor=True, not both')
+  if dataset == 'files' and not (sensor or auto_sensor):
     raise DataError('a folder of point files needs --sensor: a preset '
                     f'({", ".join(sorted(sensor_lib.PRESETS))}), a sensor spec '
                     'file, or auto (estimated from the files)')
@@ -340,11 +345,10 @@ def prepare(dataset: str, root: str, out: str, sensor: SensorSpec | str | None =
       needs.setdefault(kind == 'velodyne', path)
   for path in needs.values():
     recordings.require(path)
-  if isinstance(sensor, str):
-    sensor = (estimate_sensor(listed.get('train') or reader.list_split(root, 'train'),
-                              out, log, reader if isinstance(reader, Files) else None)
-              if sensor == 'auto' else get_sensor(sensor))
-  sensor = sensor or get_sensor(DATASET_SENSOR[dataset])
+  if auto_sensor:
+    sensor = estimate_sensor(listed.get('train') or reader.list_split(root, 'train'),
+                             out, log, reader if isinstance(reader, Files) else None)
+  sensor = sensor or sensor_lib.PRESETS[DATASET_SENSOR[dataset]]
   kept = _kept_splits(out, splits, sensor)
   made = not os.path.exists(out)
   try:

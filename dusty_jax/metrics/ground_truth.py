@@ -29,6 +29,7 @@ import numpy as np
 
 from dusty_jax import codec
 from dusty_jax.metrics import calibration
+from dusty_jax.sensor import SensorSpec
 
 
 def roc_auc(score, label) -> float:
@@ -78,7 +79,7 @@ def pooled_errors(pred, target, mask) -> dict:
           'pixels': int(mask.sum())}
 
 
-def completion(sensor, inv_depth, complete, region, renders_drop=None):
+def completion(sensor: SensorSpec, inv_depth, complete, region, renders_drop=None):
   """(errors, coverage) of x_tilde against the complete depth over ``region``.
 
   Pixels the model renders as dropped in x_tilde itself (``renders_drop``,
@@ -95,7 +96,7 @@ def completion(sensor, inv_depth, complete, region, renders_drop=None):
 NEAR_M = 40.0  # 'near' surfaces: where a drop is visible in inverse depth.
 
 
-def disentanglement(sensor, inv_depth, measurability, observed, complete,
+def disentanglement(sensor: SensorSpec, inv_depth, measurability, observed, complete,
                     drop_prob, renders_drop=None, bins: int = 10,
                     near: float = NEAR_M) -> dict:
   """Scores an inversion against ground truth.
@@ -132,7 +133,7 @@ def disentanglement(sensor, inv_depth, measurability, observed, complete,
   }
 
 
-def ring_keep_rate(observed, sensor) -> np.ndarray:
+def ring_keep_rate(observed, sensor: SensorSpec) -> np.ndarray:
   """(H,) the fraction of pixels that returned a point in each ring (row) of
   the metric depth scans ``observed`` (B, H, W; 0 or out of range: dropped)."""
   observed = np.asarray(observed, np.float32)
@@ -141,7 +142,7 @@ def ring_keep_rate(observed, sensor) -> np.ndarray:
   return np.asarray(codec.valid_depth(observed, sensor), np.float64).mean(axis=(0, 2))
 
 
-def ring_table_scores(sensor, ring_keep, observed, complete, drop_prob,
+def ring_table_scores(sensor: SensorSpec, ring_keep, observed, complete, drop_prob,
                       bins: int = 10, near: float = NEAR_M) -> dict:
   """:func:`measurability_scores` of a model-free table: each pixel's
   measurability is its ring's keep rate ``ring_keep`` (H,), e.g. the
@@ -157,7 +158,7 @@ def ring_table_scores(sensor, ring_keep, observed, complete, drop_prob,
   return measurability_scores(sensor, table, observed, complete, drop_prob, bins, near)
 
 
-def measurability_scores(sensor, measurability, observed, complete, drop_prob,
+def measurability_scores(sensor: SensorSpec, measurability, observed, complete, drop_prob,
                          bins: int = 10, near: float = NEAR_M) -> dict:
   """A measurability (B, H, W) against the returns of ``observed`` and the
   true keep probability 1 - ``drop_prob``: ECE, Brier and ROC AUC over all

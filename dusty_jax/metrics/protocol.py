@@ -32,7 +32,7 @@ import numpy as np
 from dusty_jax import codec, errors
 from dusty_jax.metrics import chamfer, clouds, point_sets, swd
 from dusty_jax.metrics.clouds import PROTOCOLS, check_protocol
-from dusty_jax.sensor import SensorSpec, check_angles, tiny_sensor
+from dusty_jax.sensor import SensorSpec, check_angles, check_spec, tiny_sensor
 
 ROW_SCALES = (('jsd', 'JSD x1e2', 1e2), ('cov', 'COV %', 1e2),
               ('mmd', 'MMD x1e3', 1e3), ('1nna', '1-NNA %', 1e2),
@@ -66,7 +66,7 @@ def subset(n_total: int, num: int, protocol: str = 'reference') -> np.ndarray:
   return evenly(n_total, num)
 
 
-def prepare_set(scans, angles, sensor, points: int, tolerance: float = 0.0,
+def prepare_set(scans, angles, sensor: SensorSpec, points: int, tolerance: float = 0.0,
                 protocol: str = 'reference'):
   """(B, H, W) scans -> FPS clouds (B, points, 3), full clouds, validity."""
   full, valid = clouds.scans_to_clouds(scans, angles, sensor, tolerance)
@@ -81,7 +81,7 @@ def default_sensor(height: int, width: int) -> SensorSpec:
                              name=f'default-range-{height}x{width}')
 
 
-def _fingerprint(real, protocol, num_points, sensor):
+def _fingerprint(real, protocol, num_points, sensor: SensorSpec):
   return (protocol, num_points, sensor.min_depth, sensor.max_depth, real.shape,
           float(np.sum(real, dtype=np.float64)))
 
@@ -126,8 +126,7 @@ def compare(real, fake, angles, *, sensor: SensorSpec | None = None,
   if len(real) != len(fake) or len(real) < 2:  # SWD pairs them; 1-NNA needs 3 clouds
     raise errors.InputError(f'compare needs as many generated scans as real ones, at least '
                             f'2 of each, got {len(real)} real and {len(fake)} generated')
-  if sensor is None:
-    sensor = default_sensor(*real.shape[1:])
+  sensor = default_sensor(*real.shape[1:]) if sensor is None else check_spec(sensor)
   angles = np.asarray(angles, np.float32)
   check_angles(angles, real.shape[1:], 'scans and ')
   cache = {} if cache is None else cache

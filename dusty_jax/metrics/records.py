@@ -11,7 +11,7 @@ import numpy as np
 
 from dusty_jax.metrics.clouds import check_protocol
 from dusty_jax.metrics.protocol import ROW_SCALES
-from dusty_jax.sensor import SensorSpec
+from dusty_jax.sensor import SensorSpec, check_spec
 
 # Result files written before the metric was named '1nna' call it 'nna'.
 _LEGACY_KEYS = {'1nna': 'nna'}
@@ -41,7 +41,7 @@ def version() -> str:
 
 
 def sensor_record(sensor: SensorSpec) -> dict:
-  return {'height': sensor.height, **sensor.to_dict()}
+  return {'height': check_spec(sensor).height, **sensor.to_dict()}
 
 
 def provenance(protocol: str, num: int, points, seeds, subset_rule: str,

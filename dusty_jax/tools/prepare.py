@@ -27,7 +27,7 @@ from absl import flags
 
 from dusty_jax import tools
 from dusty_jax.data import prepare
-from dusty_jax.sensor import PRESETS  # (numpy only)
+from dusty_jax.sensor import PRESETS, get_sensor  # (numpy only)
 
 
 def main(argv=None):
@@ -56,9 +56,11 @@ def main(argv=None):
       'splits', lambda v: set(v) <= set(prepare.SPLITS),
       f'each split is one of {", ".join(prepare.SPLITS)}', flag_values=f)
   tools.parse(f, argv, __doc__)
+  auto = f.sensor == 'auto'
+  sensor = tools.run(get_sensor, f.sensor) if f.sensor and not auto else None
   meta = tools.run(lambda: prepare.prepare(
-      f.dataset, f.root, f.out, f.sensor or None, tuple(f.splits),
-      pattern=f.pattern, split_seed=f.split_seed, topic=f.topic, every=f.every))
+      f.dataset, f.root, f.out, sensor, tuple(f.splits), pattern=f.pattern,
+      split_seed=f.split_seed, topic=f.topic, every=f.every, auto_sensor=auto))
   skipped = sum(len(v) for v in meta['skipped'].values())
   print(f'done: {meta["splits"]} -> {f.out}; {skipped} files skipped')
 
