@@ -4,7 +4,7 @@ recordings of any spinning LiDAR (``files``: every format data/points.py
 reads, and ROS bags and Velodyne captures, data/recordings.py: each sweep a
 scan), into prepared arrays (see data/arrays.py), with the sensor spec they
 were unfolded with beside them (``sensor.json``; estimated from the sweeps
-with ``sensor='auto'``).
+with ``auto_sensor=True``, ``--sensor auto``).
 
 The command line is ``python -m dusty_jax.tools.prepare``.
 
