@@ -192,3 +192,14 @@ def test_nan_points(kitti):
     unfolding.unfold(pts, kitti, source='bad.bin', firing_order=True)
   u = unfolding.unfold(pts, kitti, source='bad.bin')
   assert u.no_return == 2 and np.isfinite(u.depth).all()
+
+
+def test_a_sweep_without_a_return(kitti):
+  """A point file of placeholders only is refused in one line; in firing
+  order (KITTI) it is the authors' empty image, which prepare skips."""
+  empty = np.zeros((100, 3))
+  empty[::2] = np.nan
+  with pytest.raises(DataError, match=r'^e\.pcd: none of its 100 points is a return'):
+    unfolding.unfold(empty, kitti, source='e.pcd')
+  u = unfolding.unfold(np.zeros((100, 3)), kitti, source='e.bin', firing_order=True)
+  assert u.placed == 0 and not u.depth.any()

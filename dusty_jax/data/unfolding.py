@@ -405,6 +405,8 @@ def unfold(points, sensor: SensorSpec, ring=None, source: str = 'points', *,
     xyz = np.where(finite[:, None], xyz, 0.0)
   rng = np.sqrt(np.einsum('ij,ij->i', xyz, xyz))
   returned = rng > 0
+  if not (returned.any() or firing_order):  # (KITTI's rule: an empty image, as the authors')
+    raise DataError(f'{source}: none of its {n} points is a return (all at the origin or NaN)')
   in_range = (rng > sensor.min_depth) & (rng < sensor.max_depth)
   row, inside, ring_rows = _rows(xyz, rng, in_range, ring, firing_order, sensor, source)
   eligible = inside & in_range
