@@ -231,7 +231,7 @@ def test_shapes_derive_from_sensor(preset, shape):
 
 def test_bad_sensor_shape():
   # Any number of rows (tests/test_beam_counts.py); a width must be a multiple of 16.
-  with pytest.raises(ValueError, match='16x72; the nearest valid width is 80'):
-    models.ModelSettings('dusty1').discriminator(tiny_sensor(16, 72))
+  with pytest.raises(ValueError, match='16x70; the nearest valid width is 64'):
+    models.ModelSettings('dusty1').discriminator(tiny_sensor(16, 70))
   with pytest.raises(ValueError, match="unknown model 'dusty3'"):
     models.ModelSettings('dusty3')
