@@ -37,7 +37,7 @@ import numpy as np
 import optax
 import tqdm
 
-from dusty_jax import checkpoint, corrupt, parallel
+from dusty_jax import checkpoint, corrupt, errors, parallel
 from dusty_jax.codec import ALPHA
 from dusty_jax.encoder import EncoderSettings, init_variables, module, project
 
@@ -205,7 +205,8 @@ def _train(params, directory, opts, real, settings, progress):
     if (i + 1) % 50 == 0 or i + 1 == opts.steps:
       bar.set_postfix({k: f'{float(v):.4f}' for k, v in metrics.items()})
     if (i + 1) % SAVE_EVERY == 0 or i + 1 == opts.steps:
-      checkpoint.save(mngr, i + 1, {'encoder': enc_vars, 'opt': opt_state}, force=True)
+      with errors.interrupts_deferred():  # orbax's save is not cut half-way
+        checkpoint.save(mngr, i + 1, {'encoder': enc_vars, 'opt': opt_state}, force=True)
     bar.update(1)
   bar.close()
   checkpoint.wait(mngr)

@@ -3,12 +3,16 @@
 The library raises them; the command lines' one entry point (cli.py) prints
 each as one ``error: ...`` line and exits non-zero, where a bug still shows
 its traceback. configs.ConfigError and checkpoint.CheckpointError belong to
-the family too (checkpoint.py imports nothing of ours, so it keeps its own).
+the family too (checkpoint.py imports nothing of ours but files.py, so it
+keeps its own).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import threading
 
 import numpy as np
 
@@ -26,6 +30,27 @@ class DataError(UserError, ValueError):
 class Interrupted(KeyboardInterrupt):
   """Ctrl-C, with what a rerun does: where it stopped and what it resumes
   from. A KeyboardInterrupt, so code that catches that still does."""
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+  """A Ctrl-C that comes inside is raised on the way out. For a trainer's
+  loop around checkpoint.save: orbax's save cut half-way leaves writes that
+  print tracebacks as the program ends. Swaps the SIGINT handler while
+  inside, on the main thread (no other gets SIGINT)."""
+  if threading.current_thread() is not threading.main_thread():
+    yield
+    return
+  caught = []
+  previous = signal.signal(signal.SIGINT, lambda *a: caught.append(a))
+  try:
+    yield
+  finally:
+    signal.signal(signal.SIGINT, previous)
+    if caught and previous is signal.default_int_handler:
+      raise KeyboardInterrupt
+    if caught and callable(previous):
+      previous(*caught[0])
 
 
 class InputError(UserError, ValueError):

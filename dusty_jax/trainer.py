@@ -519,7 +519,8 @@ def _train(config, sensor: SensorSpec, workdir: str, log):
         data.check(done, mngr.latest_step(), functools.partial(parallel.all_texts, 'data'))
         progress.write(done, records)
       if ckpt_now:
-        checkpoint.save(mngr, done, state)
+        with errors.interrupts_deferred():  # orbax's save is not cut half-way
+          checkpoint.save(mngr, done, state)
         saved_at = time.monotonic()
       if is_main and (done % config.image_every == 0 or done == config.num_steps):
         _save_images(os.path.join(workdir, 'images', f'step_{done:07d}.png'),
