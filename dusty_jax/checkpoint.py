@@ -1,17 +1,18 @@
 """The one place that knows about orbax: save and restore train states, and
 read one item (e.g. the EMA generator's variables) without the rest.
 
-Imports nothing of ours but files.py. orbax's public API only: a failure is
-told by its type and by the files on disk, never by a message's words. A read
-or write failing half-way leaves TensorStore printing 'Event loop is closed',
-so a step unlike its file sizes when saved (checkpoints_sizes.json, beside
-checkpoints/) is not read, nor a save begun that the disk has no room for.
+orbax's public API only (and nothing of ours but errors.py and files.py): a
+failure is told by its type and the files on disk, never by a message's words.
+A read or write failing half-way leaves TensorStore printing 'Event loop is
+closed', so a step unlike its file sizes when saved (checkpoints_sizes.json,
+beside checkpoints/) is not read, nor a save begun without room on the disk.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import gc
 import json
 import logging
@@ -23,16 +24,16 @@ import time
 import jax
 import orbax.checkpoint as ocp
 
-from dusty_jax import files
+from dusty_jax import errors, files
 
 DIRECTORY = 'checkpoints'  # inside a run directory
 SIZES, DAMAGED = '_sizes.json', '_damaged'  # what DIRECTORY's siblings end in
 ROOM_MARGIN = 1.2  # steps differ a little in how orbax packs arrays into files
 UNREADABLE = (ValueError, OSError, KeyError)  # what TensorStore and orbax raise
 # For readers: the values orbax would otherwise set itself, with a warning each.
-READ_ONLY = ocp.CheckpointManagerOptions(read_only=True, save_interval_steps=0,
-                                         create=False)
+READ_ONLY = ocp.CheckpointManagerOptions(read_only=True, save_interval_steps=0, create=False)
 _ORBAX = os.path.dirname(os.path.dirname(os.path.abspath(ocp.__file__)))
+_stderr = functools.partial(print, file=sys.stderr)
 
 
 class CheckpointError(ValueError):
@@ -43,16 +44,11 @@ class MissingItemError(KeyError):
   """A checkpoint holds no item of the asked name (not damage)."""
 
 
-def _stderr(message: str):
-  print(message, file=sys.stderr)
-
-
 @contextlib.contextmanager
 def quiet():
-  """Inside, orbax's log records (told by the file logging them) and asyncio's
-  reports about the reads a failed restore abandons are dropped, by a new
-  filter per call on those two loggers. The command lines hold it for a whole
-  run, since orbax saves in background threads."""
+  """Drops orbax's log records (told by the file logging them) and asyncio's
+  reports of the reads a failed restore abandons (a filter per call). The
+  command lines hold it for a whole run: orbax saves in background threads."""
   drop = lambda r: r.name != 'asyncio' and not os.path.abspath(r.pathname).startswith(_ORBAX)
   loggers = [logging.getLogger(name) for name in ('absl', 'asyncio')]
   for logger in loggers:
@@ -69,19 +65,17 @@ def quiet():
 
 def manager(workdir: str, keep: int = 3, keep_every: int = 0, cleanup_tmp: bool = False,
             log=None) -> ocp.CheckpointManager:
-  """The run's checkpoints: the last ``keep`` steps, and the multiples of
-  ``keep_every``. ``cleanup_tmp``: first remove (and ``log``) the folders of
-  saves cut short, as orbax lists them; only for a caller that holds the run
-  directory alone (parallel.hold_workdir)."""
+  """The run's checkpoints: the last ``keep`` steps and multiples of ``keep_every``.
+  ``cleanup_tmp``: first remove (and ``log``) the folders of saves cut short, for a
+  caller that holds the run directory alone (parallel.hold_workdir)."""
   path = os.path.join(os.path.abspath(workdir), DIRECTORY)
   if cleanup_tmp and jax.process_index() == 0 and os.path.isdir(path):
     cut = sorted(str(p.get()) for p in ocp.utils.tmp_checkpoints(path))
     for folder in cut:
       shutil.rmtree(folder)
     if cut and log:
-      log(f"removed {len(cut)} unfinished checkpoint folder{'s' * (len(cut) > 1)} in "
-          f"{path} (a save cut short by an earlier run's end): "
-          f"{', '.join(map(os.path.basename, cut))}")
+      log(f"removed {len(cut)} unfinished checkpoint folder{'s' * (len(cut) > 1)} in {path} (a "
+          f"save cut short by an earlier run's end): {', '.join(map(os.path.basename, cut))}")
   with quiet():  # it reads every step's metadata, warning about damaged ones.
     return ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(
         max_to_keep=keep, keep_period=keep_every or None, create=True))
@@ -94,10 +88,9 @@ def saved_steps(workdir: str) -> list[int]:
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
-  """Starts saving ``state`` as ``step`` in the background. The previous
-  save's failure is a CheckpointError here, as is a disk without room for a
-  step like the newest (in a one-process run: no peer waits for it). A
-  Ctrl-C inside leaves writes half-done: see errors.interrupts_deferred."""
+  """Starts saving ``state`` as ``step`` in the background. The previous save's
+  failure is a CheckpointError here, as is a disk without room for a step like
+  the newest (one process: no peer waits). See errors.interrupts_deferred."""
   if not (force or mngr.should_save(step)):
     return False
   wait(mngr)
@@ -110,8 +103,7 @@ def save(mngr: ocp.CheckpointManager, step: int, state, force: bool = False) -> 
 
 
 def wait(mngr: ocp.CheckpointManager):
-  """Waits for the save in progress (its failure is a CheckpointError), then
-  notes the file sizes of the steps saved."""
+  """Waits for the save in progress (a CheckpointError), notes the sizes saved."""
   directory = str(mngr.directory)
   saving = set(mngr.all_steps()) - set(ocp.utils.checkpoint_steps(directory))
   with _write_errors(directory, max(saving, default=None)):
@@ -132,48 +124,26 @@ def _write_errors(directory: str, step: int | None):
     then = f'rerun to resume from {intact[-1]}' if intact else 'rerun to start afresh'
     what = 'a checkpoint' if step is None else f'checkpoint {step}'
     # TensorStore's full disk is a ValueError: it is told by the room left.
-    full = any(isinstance(x, OSError) and x.errno == errno.ENOSPC for x in causes(e))
+    full = any(isinstance(x, OSError) and x.errno == errno.ENOSPC for x in errors.causes(e))
     with contextlib.suppress(OSError):
       full = full or shutil.disk_usage(directory).free < _room(directory)
-    if full:
-      raise CheckpointError(f'no space left on device while writing {what} in '
-                            f'{directory}; {kept}; free space and {then}') from e
-    raise CheckpointError(f'writing {what} in {directory} failed ({_reason(e)}); '
-                          f'{kept}; {then}') from e
-
-
-def causes(e: BaseException) -> list:
-  """``e`` and the exceptions it was raised from or during, in order."""
-  seen = []
-  while e is not None and e not in seen:
-    seen.append(e)
-    e = e.__cause__ or e.__context__
-  return seen
-
-
-def _reason(e: Exception) -> str:
-  text = str(e).strip()
-  return f'{type(e).__name__}: {text.splitlines()[0][:200]}' if text else type(e).__name__
-
-
-def _sizes(step_dir: str, blocks: bool = False) -> dict:  # {path in it: bytes}
-  paths = [os.path.join(d, f) for d, _, fs in os.walk(step_dir) for f in fs]
-  return {os.path.relpath(p, step_dir): os.stat(p).st_blocks * 512 if blocks
-          else os.path.getsize(p) for p in paths}
+    raise CheckpointError(
+        f'no space left on device while writing {what} in {directory}; {kept}; free space '
+        f'and {then}' if full else f'writing {what} in {directory} failed '
+        f'({errors.reason(e)}); {kept}; {then}') from e
 
 
 def _room(directory: str, state=None) -> int:  # the newest step's, or state's
   steps = ocp.utils.checkpoint_steps(directory)
   if steps:
-    return sum(_sizes(os.path.join(directory, str(max(steps))), blocks=True).values())
+    return sum(files.sizes(os.path.join(directory, str(max(steps))), blocks=True).values())
   return sum(getattr(x, 'nbytes', 0) for x in jax.tree.leaves(state))
 
 
 def _read_sizes(directory: str) -> dict:
-  with contextlib.suppress(OSError, ValueError):  # none (an older run, a copy), or cut
+  with contextlib.suppress(OSError, ValueError, TypeError):  # none (an older run), or cut
     with open(os.path.normpath(directory) + SIZES) as f:
-      sizes = json.load(f)
-    return sizes if isinstance(sizes, dict) else {}
+      return dict(json.load(f))
   return {}
 
 
@@ -183,42 +153,21 @@ def _note_sizes(directory: str):
   if jax.process_index() != 0:
     return
   old = _read_sizes(directory)
-  new = {str(s): old.get(str(s)) or _sizes(os.path.join(directory, str(s)))
+  new = {str(s): old.get(str(s)) or files.sizes(os.path.join(directory, str(s)))
          for s in ocp.utils.checkpoint_steps(directory)}
   if new != old:
-    with contextlib.suppress(OSError), files.atomic_write(
-        os.path.normpath(directory) + SIZES) as f:
+    with contextlib.suppress(OSError), files.atomic_write(os.path.normpath(directory) + SIZES) as f:
       json.dump(new, f)
-
-
-def _damage(step_dir: str, saved: dict | None) -> str | None:
-  """Why a step cannot restore, seen before orbax reads it: no files, or
-  files unlike their sizes when ``saved``. None when none is seen."""
-  now = _sizes(step_dir) if os.path.isdir(step_dir) else {}
-  bad = sorted(n for n in saved or {} if now.get(n) != saved[n])
-  if not now or not bad:
-    return None if now else 'empty step directory'
-  name, more = bad[0], f', and {len(bad) - 1} more files' if len(bad) > 1 else ''
-  if name not in now:
-    return f'file missing: {name}{more}'
-  what = 'truncated' if now[name] < saved[name] else 'damaged'
-  return f'data file {what}: {name} has {now[name]} bytes, {saved[name]} when saved{more}'
-
-
-def restore(mngr: ocp.CheckpointManager, step: int, target):
-  """The state saved at ``step``, shaped and placed like ``target``: each
-  process reads the part that its own devices hold."""
-  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
-  return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
 
 
 def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
                    set_aside: bool = False):
-  """(state, step) of the newest checkpoint that restores, or (target, None).
-  A damaged one is skipped with a line saying which and why; with
-  ``set_aside`` (resuming) it moves to checkpoints_damaged/ beside, so that
-  its step can be saved again. Nothing is deleted."""
+  """(state, step) of the newest checkpoint that restores, shaped and placed like
+  ``target`` (each process reads what its devices hold), or (target, None). A
+  damaged one is skipped with a line saying why; with ``set_aside`` (resuming) it
+  moves to checkpoints_damaged/ beside, so that its step can be saved again."""
   directory = str(mngr.directory)
+  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
 
   def move_aside(step):  # by process 0, for all
     src = os.path.join(directory, str(step))
@@ -234,9 +183,10 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
   if not mngr.all_steps():
     return target, None
   try:
-    return _newest_that_restores(directory, mngr.all_steps(), log,
-                                 lambda reader, step: restore(reader, step, target),
-                                 on_damaged=move_aside if set_aside else None)
+    return _newest_that_restores(
+        directory, mngr.all_steps(), log, lambda reader, step: reader.restore(
+            step, args=ocp.args.StandardRestore(abstract)),
+        on_damaged=move_aside if set_aside else None)
   except CheckpointError:
     if mngr.all_steps():
       raise
@@ -271,13 +221,12 @@ def restore_item(directory: str, name: str, step: int | None = None, log=_stderr
 
 def _newest_that_restores(directory: str, steps, log, attempt, handlers=None,
                           on_damaged=None, fallback: bool = True):
-  """(attempt(reader, step), step) for the newest of ``steps`` it succeeds on.
-  A step that fails (damage seen first, or an UNREADABLE error) is reported
-  and, with ``fallback``, the one before is tried (``on_damaged(step)``
-  first); without, it is a CheckpointError. A MissingItemError propagates."""
+  """(attempt(reader, step), step) for the newest of ``steps`` it succeeds on. A step
+  that fails (damage seen, or an UNREADABLE error) is reported and, with ``fallback``,
+  the one before tried (after ``on_damaged(step)``); without, a CheckpointError."""
   sizes = _read_sizes(directory)
   for i, step in enumerate(sorted(steps, reverse=True)):
-    why = _damage(os.path.join(directory, str(step)), sizes.get(str(step)))
+    why = files.unlike(os.path.join(directory, str(step)), sizes.get(str(step)))
     try:
       if why is None:
         # A fresh reader per attempt: one whose restore failed fails the next.
@@ -290,7 +239,7 @@ def _newest_that_restores(directory: str, steps, log, attempt, handlers=None,
     except MissingItemError:
       raise
     except UNREADABLE as e:
-      why = f'unreadable: {_reason(e)}'
+      why = f'unreadable: {errors.reason(e)}'
     if not fallback:
       raise CheckpointError(f'{directory}: checkpoint step {step} does not restore ({why})')
     log(f'warning: checkpoint step {step} in {directory} does not restore ({why}); '

@@ -3,8 +3,8 @@
 The library raises them; the command lines' one entry point (cli.py) prints
 each as one ``error: ...`` line and exits non-zero, where a bug still shows
 its traceback. configs.ConfigError and checkpoint.CheckpointError belong to
-the family too (checkpoint.py imports nothing of ours but files.py, so it
-keeps its own).
+the family too (checkpoint.py keeps its own: it imports nothing of ours but
+this file and files.py).
 """
 
 from __future__ import annotations
@@ -106,6 +106,21 @@ def check_count(n, what: str, low: int = 0, high: int = INT32_MAX) -> int:
     limit = ' and <= 2**31 - 1 (int32, as compiled)' if high == INT32_MAX else f' and <= {high}'
     raise InputError(f'{what}={n!r}: must be a whole number >= {low}{limit}')
   return int(n)
+
+
+def causes(e: BaseException) -> list:
+  """``e`` and the exceptions it was raised from or during, in order."""
+  seen = []
+  while e is not None and e not in seen:
+    seen.append(e)
+    e = e.__cause__ or e.__context__
+  return seen
+
+
+def reason(e: BaseException) -> str:
+  """'TYPE: the first line of its message' (200 characters at most)."""
+  text = str(e).strip()
+  return f'{type(e).__name__}: {text.splitlines()[0][:200]}' if text else type(e).__name__
 
 
 def show_traceback() -> bool:

@@ -1,5 +1,7 @@
-"""Writing a file so that no reader ever sees half of it: :func:`atomic_write`,
-and :func:`atomic_path` for writers that take a path rather than a file."""
+"""Files whole or not at all: writing one so that no reader ever sees half of
+it (:func:`atomic_write`, and :func:`atomic_path` for writers that take a
+path rather than a file), and telling a folder's files from what they were
+(:func:`sizes`, :func:`unlike`)."""
 
 from __future__ import annotations
 
@@ -41,3 +43,25 @@ def atomic_write(path: str, mode: str = 'w'):
     raise ValueError(f"mode={mode!r}: atomic_write writes a whole file, 'w' or 'wb'")
   with atomic_path(path) as tmp, open(tmp, mode) as f:
     yield f
+
+
+def sizes(folder: str, blocks: bool = False) -> dict:
+  """{path inside ``folder``: bytes} of every file below it (``blocks``: as
+  allocated on disk, which a copy of them needs)."""
+  paths = [os.path.join(d, f) for d, _, fs in os.walk(folder) for f in fs]
+  return {os.path.relpath(p, folder): os.stat(p).st_blocks * 512 if blocks
+          else os.path.getsize(p) for p in paths}
+
+
+def unlike(folder: str, saved: dict | None) -> str | None:
+  """Why ``folder`` is not what :func:`sizes` recorded as ``saved``: no files,
+  a file missing, truncated or of another size; None when nothing says so."""
+  now = sizes(folder) if os.path.isdir(folder) else {}
+  bad = sorted(n for n in saved or {} if now.get(n) != saved[n])
+  if not now or not bad:
+    return None if now else 'empty directory'
+  name, more = bad[0], f', and {len(bad) - 1} more files' if len(bad) > 1 else ''
+  if name not in now:
+    return f'file missing: {name}{more}'
+  what = 'truncated' if now[name] < saved[name] else 'damaged'
+  return f'data file {what}: {name} has {now[name]} bytes, {saved[name]} when saved{more}'

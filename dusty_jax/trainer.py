@@ -396,7 +396,7 @@ def train_and_evaluate(config, workdir: str, log=print,
         run = after_training.STEPS[name](run)
   except BaseException as e:
     watch.close()
-    if (any(parallel.is_peer_loss(x) for x in checkpoint.causes(e))
+    if (any(parallel.is_peer_loss(x) for x in errors.causes(e))
         and not errors.show_traceback()):
       watch.lost(_first_line(e))
     raise

@@ -12,6 +12,7 @@ import sys
 
 import jax
 import numpy as np
+import orbax.checkpoint as ocp
 import pytest
 
 import dusty_jax
@@ -73,7 +74,8 @@ def test_load_equals_the_trainer_state(smoke_run):
   target = trainer.init_state(setup, jax.random.key(0))
   mngr = checkpoint.manager(workdir)
   for step in (2, 4):
-    full = checkpoint.restore(mngr, step, target)
+    full = mngr.restore(step, args=ocp.args.StandardRestore(
+        jax.tree.map(ocp.utils.to_shape_dtype_struct, target)))  # orbax itself
     for ema, want in ((True, full.ema_params), (False, full.g_params)):
       params, _ = dusty_jax.load_checkpoint(workdir, step=step, ema=ema)
       for a, b in zip(jax.tree.leaves(params.variables), jax.tree.leaves(want)):

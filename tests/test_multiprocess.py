@@ -20,7 +20,7 @@ import jax
 import numpy as np
 import pytest
 
-from dusty_jax import checkpoint, levels, parallel
+from dusty_jax import checkpoint, errors, levels, parallel
 from conftest import FAST_COMPILE
 
 # Trainings of several processes (minutes on 2 cores): the slow set.
@@ -120,7 +120,7 @@ def test_a_peer_lost_during_a_checkpoint_write_reads_as_a_lost_peer(monkeypatch)
     except RuntimeError as e:
       raise checkpoint.CheckpointError('writing checkpoint 4 in run/checkpoints failed') from e
   except checkpoint.CheckpointError as e:
-    assert any(parallel.is_peer_loss(x) for x in checkpoint.causes(e))
+    assert any(parallel.is_peer_loss(x) for x in errors.causes(e))
   # Other errors that mention connections are not: a disk, a refused download.
   for text in ('No space left on device', 'Connection reset by peer while fetching a URL'):
     assert not parallel.is_peer_loss(RuntimeError(text))
@@ -137,7 +137,7 @@ def test_a_peer_lost_during_a_checkpoint_write_reads_as_a_lost_peer(monkeypatch)
       except jax.errors.JaxRuntimeError as e:
         raise checkpoint.CheckpointError('writing checkpoint 4 failed') from e
     except checkpoint.CheckpointError as e:
-      assert not any(parallel.is_peer_loss(x) for x in checkpoint.causes(e)), other
+      assert not any(parallel.is_peer_loss(x) for x in errors.causes(e)), other
   monkeypatch.setitem(parallel._run, 'coordinator', None)  # joined by other means
   assert not parallel.is_peer_loss(jax.errors.JaxRuntimeError(grpc.format('127.0.0.1:41353')))
   assert parallel.is_peer_loss(jax.errors.JaxRuntimeError(

@@ -434,7 +434,7 @@ def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, t
   reasons = {'truncate': r'data file truncated: default/\S*d/[0-9a-f]+ has \d+ bytes, '
                          r'\d+ when saved, and \d+ more files',
              'metadata': r'file missing: _CHECKPOINT_METADATA, and \d+ more files',
-             'empty': 'empty step directory'}
+             'empty': 'empty directory'}
   for run, damage in zip(runs[1:], ('truncate', 'metadata', 'empty')):
     d = os.path.join(run, 'checkpoints')
     want = (rf'warning: checkpoint step 4 in {re.escape(d)} does not restore '
