@@ -6,13 +6,14 @@ Part 1, speed: reading and unfolding one sweep of ~100k points in each
 format, on one core.
 
 A simulated sweep (float32 x, y, z, intensity; uint16 ring; uint8
-return_type; float64 time_stamp: a VLP-16 driver's fields) is written once
+return_type; float64 time_stamp: a driver's fields; one return in each of
+--points firings of the OS1-128 preset, 128 x 1024) is written once
 per format with data.write_points, then read with data.read_points: the
 first read (an Ouster recording's builds the SDK's XYZ table, kept for the
 next) and the median of ``--repeats`` more, in this one process pinned to
 one CPU. The Ouster sample recording (../shared, 128 x 1024
 pixels, ~107k returns; needs ouster-sdk) is read as it is, where present.
-Each read sweep is then unfolded into the VLP-16 preset's 16 x 1024 image
+Each read sweep is then unfolded into the OS1-128 preset's 128 x 1024 image
 (the Ouster recording into its own calibration's 128 x 1024) with its ring
 field and without (rows by elevation): median of ``--repeats``. The
 target: reading and unfolding 100k points under 50 ms on one core. Prints a
@@ -63,12 +64,22 @@ FORMATS = [
 ]
 
 
+SWEEP_SENSOR = sensor_lib.PRESETS['os1-128']  # 128 x 1024 firings: room for 100k returns
+
+
 def sweep(n: int, seed: int = 0) -> dict:
-  """A 16-ring sweep of n points at 1-80 m with a driver's fields."""
+  """A sweep of n returns of SWEEP_SENSOR at 1-80 m, each in its own
+  (ring, firing), with a driver's fields: what unfold takes for a sweep of
+  that sensor (a random cloud is refused as no sweep of it)."""
   rng = np.random.default_rng(seed)
-  ring = rng.integers(0, 16, n).astype(np.uint16)
-  elevation = np.deg2rad(-15 + 2 * ring.astype(np.float64))
-  azimuth = rng.uniform(-np.pi, np.pi, n)
+  spec = SWEEP_SENSOR
+  if n > spec.height * spec.native_width:
+    raise SystemExit(f'--points {n}: at most {spec.height * spec.native_width} '
+                     f'(one return per firing of {spec.name})')
+  cell = rng.choice(spec.height * spec.native_width, n, replace=False)
+  ring = (cell // spec.native_width).astype(np.uint16)
+  elevation = spec.elevation[ring]
+  azimuth = np.pi * (1 - 2 * (cell % spec.native_width + 0.5) / spec.native_width)
   r = rng.uniform(1, 80, n)
   return {
       'x': (r * np.cos(elevation) * np.cos(azimuth)).astype(np.float32),
@@ -132,7 +143,7 @@ def main():
       except UserError as e:  # an optional reader missing
         print(f'{label:24s} skipped: {e}')
         continue
-      results[label] = time_reads(path, args.repeats, sensor_lib.PRESETS['vlp16'])
+      results[label] = time_reads(path, args.repeats, SWEEP_SENSOR)
   if os.path.exists(OUSTER_PCAP):
     try:
       results['Ouster .pcap (sample)'] = time_reads(
