@@ -100,6 +100,16 @@ NEAREST_CHUNK = 2 ** 22  # points x beams compared at a time (memory bound)
 # returns of each "beam" found are not one beam's sweep (sparse noise, or a
 # sweep thinned out).
 MIN_FIRINGS = 64
+# Per-laser vertical offsets as large as a Velodyne HDL-64E's (0.15-0.2 m,
+# a centimetre apart) make neighbouring beams' lines cross a few metres
+# out, where the returns cannot say which beam is theirs (and the model,
+# first order in offset / range, bends): where the beams found from the
+# elevations have offsets b this large, they are found again from the
+# returns beyond NEAR_OFFSETS x max |b| alone (3 m at 0.2 m; on simulated
+# HDL-64E sweeps, 2 m still mixed beams on 2 of 8), if MIN_FAR_SHARE of
+# the returns lie there.
+NEAR_OFFSETS = 15.0
+MIN_FAR_SHARE = 0.5
 
 
 @dataclasses.dataclass
@@ -112,10 +122,11 @@ class Estimate:
   rms_deg: np.ndarray  # per-beam RMS of the fit, degrees (NaN if inferred)
   agreement: float  # share of points whose nearest fitted beam is their own
   firings: int  # measured firings per revolution
-  near: int = 0  # returns nearer than FIT_MIN_RANGE, not fitted
+  near: int = 0  # returns nearer than fit_from, not fitted
   rings_left_out: list = dataclasses.field(default_factory=list)  # ring ids
   offsets_from_geometry: int = 0  # beams whose offset follows the geometry
   beyond: int = 0  # returns beyond the outermost beams found, not fitted
+  fit_from: float = FIT_MIN_RANGE  # metres (NEAR_OFFSETS)
 
   def summary(self) -> str:
     s = self.spec
@@ -135,7 +146,7 @@ class Estimate:
             else ''),
     ]
     if self.near:
-      lines.append(f'  {self.near} returns nearer than {FIT_MIN_RANGE} m not fitted '
+      lines.append(f'  {self.near} returns nearer than {self.fit_from:.2f} m not fitted '
                    '(placeholders of beams without a return, or too near to tell)')
     if self.beyond:
       lines.append(f'  {self.beyond} returns beyond the outermost beams found not fitted '
@@ -560,8 +571,15 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   returns = _returns(xyz, rings, named)
   if returns.ring is not None:
     beams, beyond = _beams_by_ring(returns), 0
+    ranges = returns.r
   else:
     beams, on = _beams_by_elevation(returns, named)
+    ranges = returns.r[on]  # (the spec's range: of all the returns the beams hold)
+    far = returns.r >= NEAR_OFFSETS * np.nanmax(np.abs(beams.b))
+    if not far.all() and far.mean() >= MIN_FAR_SHARE and far.sum() >= 100:
+      returns = dataclasses.replace(returns.where(far), near=returns.near + int((~far).sum()),
+                                    fit_from=float(NEAR_OFFSETS * np.nanmax(np.abs(beams.b))))
+      beams, on = _beams_by_elevation(returns, named)
     returns, beyond = returns.where(on), int((~on).sum())
   top_first = np.argsort(-beams.a, kind='stable')
   a, b, rms, ids = (x[top_first] for x in (beams.a, beams.b, beams.rms, beams.ids))
@@ -571,14 +589,15 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   own = row_of[beams.beam]  # each return's row of the image
   firings = _firings(returns.azimuth, own, len(a), named)
   _check_beams(a, own, firings, len(xyz), sources)
-  spec = _spec(name, a, b, returns.r, firings, width, mount_height, named)
+  spec = _spec(name, a, b, ranges, firings, width, mount_height, named)
   # Agreement: each point's nearest fitted beam against its own.
   nearest = _nearest(returns.sin_el, returns.inv_r, a, b, np.arange(len(a)))
   return Estimate(spec, points=len(returns.r), beams_measured=len(a) - len(inferred),
                   beams_inferred=inferred, rms_deg=np.rad2deg(rms),
                   agreement=float(np.mean(nearest == own)), firings=firings,
                   near=returns.near, rings_left_out=beams.left_out,
-                  offsets_from_geometry=int(beams.free), beyond=beyond)
+                  offsets_from_geometry=int(beams.free), beyond=beyond,
+                  fit_from=returns.fit_from)
 
 
 def _as_points(sweeps, ring):
@@ -609,7 +628,8 @@ class _Returns:
   azimuth: np.ndarray  # radians
   ring: np.ndarray | None  # ring ids, where every sweep has them
   rings_seen: np.ndarray | None  # the ring ids of all returns, near ones too
-  near: int  # returns nearer than FIT_MIN_RANGE, left out
+  near: int  # returns nearer than fit_from, left out
+  fit_from: float = FIT_MIN_RANGE
 
   def where(self, keep) -> _Returns:
     """The returns ``keep`` (a mask) selects."""
