@@ -258,9 +258,9 @@ def measure(run: str, a) -> dict:
   import jax.numpy as jnp
   import dusty_jax
   import train_step
-  from dusty_jax import inversion, sampling, sensor as sensor_lib, trainer
+  from dusty_jax import generator, inversion, sampling, trainer
   config = configs.load(run)
-  sensor = sensor_lib.from_config(config.sensor)
+  sensor = generator.read_spec(run)[0]  # the spec the run recorded
   setup = trainer.make_setup(config, sensor)
   key = jax.random.key(0)
   g = jax.eval_shape(setup.generator.init, key, jnp.zeros((1, setup.settings.latent_dim)))

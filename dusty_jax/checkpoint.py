@@ -26,17 +26,16 @@ import orbax.checkpoint as ocp
 
 from dusty_jax import errors, files
 
-DIRECTORY = 'checkpoints'  # inside a run directory
-SIZES, DAMAGED = '_sizes.json', '_damaged'  # what DIRECTORY's siblings end in
+DIRECTORY, SIZES, DAMAGED = 'checkpoints', '_sizes.json', '_damaged'  # in a run; + siblings
 ROOM_MARGIN = 1.2  # steps differ a little in how orbax packs arrays into files
-UNREADABLE = (ValueError, OSError, KeyError)  # what TensorStore and orbax raise
+UNREADABLE = Exception  # TensorStore's ValueErrors, OSErrors; a partial read: Exception
 # For readers: the values orbax would otherwise set itself, with a warning each.
 READ_ONLY = ocp.CheckpointManagerOptions(read_only=True, save_interval_steps=0, create=False)
 _ORBAX = os.path.dirname(os.path.dirname(os.path.abspath(ocp.__file__)))
 _stderr = functools.partial(print, file=sys.stderr)
 
 
-class CheckpointError(ValueError):
+class CheckpointError(errors.UserError, ValueError):
   """A checkpoint that cannot be read or written: which, and what a rerun does."""
 
 
@@ -77,8 +76,10 @@ def manager(workdir: str, keep: int = 3, keep_every: int = 0, cleanup_tmp: bool 
       log(f"removed {len(cut)} unfinished checkpoint folder{'s' * (len(cut) > 1)} in {path} (a "
           f"save cut short by an earlier run's end): {', '.join(map(os.path.basename, cut))}")
   with quiet():  # it reads every step's metadata, warning about damaged ones.
-    return ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(
+    mngr = ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(
         max_to_keep=keep, keep_period=keep_every or None, create=True))
+  _note_sizes(path, unchecked=True)
+  return mngr
 
 
 def saved_steps(workdir: str) -> list[int]:
@@ -135,9 +136,8 @@ def _write_errors(directory: str, step: int | None):
 
 def _room(directory: str, state=None) -> int:  # the newest step's, or state's
   steps = ocp.utils.checkpoint_steps(directory)
-  if steps:
-    return sum(files.sizes(os.path.join(directory, str(max(steps))), blocks=True).values())
-  return sum(getattr(x, 'nbytes', 0) for x in jax.tree.leaves(state))
+  return (sum(files.sizes(os.path.join(directory, str(max(steps))), blocks=True).values())
+          if steps else sum(getattr(x, 'nbytes', 0) for x in jax.tree.leaves(state)))
 
 
 def _read_sizes(directory: str) -> dict:
@@ -147,14 +147,14 @@ def _read_sizes(directory: str) -> dict:
   return {}
 
 
-def _note_sizes(directory: str):
-  """Each step on disk with its files' sizes, noted when first seen (process
-  0 writes for all; where it cannot, steps are read unchecked)."""
+def _note_sizes(directory: str, unchecked: bool = False):
+  """Each step on disk with its files' sizes, noted when first seen (by process 0); with
+  ``unchecked`` (a run opening) None: an earlier process may have died damaging it."""
   if jax.process_index() != 0:
     return
   old = _read_sizes(directory)
-  new = {str(s): old.get(str(s)) or files.sizes(os.path.join(directory, str(s)))
-         for s in ocp.utils.checkpoint_steps(directory)}
+  new = {str(s): old[str(s)] if str(s) in old else None if unchecked else files.sizes(
+      os.path.join(directory, str(s))) for s in ocp.utils.checkpoint_steps(directory)}
   if new != old:
     with contextlib.suppress(OSError), files.atomic_write(os.path.normpath(directory) + SIZES) as f:
       json.dump(new, f)
@@ -195,9 +195,8 @@ def restore_latest(mngr: ocp.CheckpointManager, target, log=_stderr,
 
 
 def restore_item(directory: str, name: str, step: int | None = None, log=_stderr):
-  """(item ``name`` of a saved state, step), read alone and shaped by the
-  checkpoint's metadata. ``directory``: a run's checkpoints/. Without
-  ``step``, the newest that restores (damaged ones skipped with a line)."""
+  """(item ``name`` of a saved state in a run's checkpoints/ ``directory``, step), read
+  alone as its metadata shapes it; without ``step``, of the newest that restores."""
   steps = sorted(ocp.utils.checkpoint_steps(directory)) if os.path.isdir(directory) else []
   if not steps or step not in steps + [None]:
     raise FileNotFoundError(f'{directory}: no checkpoint ' + (

@@ -9,8 +9,8 @@ error). While a command runs, orbax's log records and asyncio's reports are
 silenced (checkpoint.quiet), which a library user's own program never is.
 Not silenced: TensorStore's 'Event loop is closed' reports when an orbax
 save or restore fails half-way (a disk filled by another writer during a
-save, a checkpoint damaged without a size change or saved without a
-manifest) may come before the one error line.
+save, a checkpoint damaged without a size change or not in
+checkpoints_sizes.json) may come before the one error line.
 """
 
 from __future__ import annotations

@@ -3,8 +3,7 @@
 The library raises them; the command lines' one entry point (cli.py) prints
 each as one ``error: ...`` line and exits non-zero, where a bug still shows
 its traceback. configs.ConfigError and checkpoint.CheckpointError belong to
-the family too (checkpoint.py keeps its own: it imports nothing of ours but
-this file and files.py).
+the family too (defined beside what raises them).
 """
 
 from __future__ import annotations

@@ -64,4 +64,4 @@ def unlike(folder: str, saved: dict | None) -> str | None:
   if name not in now:
     return f'file missing: {name}{more}'
   what = 'truncated' if now[name] < saved[name] else 'damaged'
-  return f'data file {what}: {name} has {now[name]} bytes, {saved[name]} when saved{more}'
+  return f'file {what}: {name} has {now[name]} bytes, {saved[name]} when saved{more}'

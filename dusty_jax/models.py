@@ -66,7 +66,7 @@ def check_shape(sensor: SensorSpec):
 
 def pad_rows(x, sensor: SensorSpec, multiple: int = DOWNSAMPLE, value=ALPHA):
   """(B, H, W, ...) -> (B, H', W, ...), H' = H rounded up to ``multiple``:
-  rows of ``value`` below the sensor's lowest beam (nothing where H is one)."""
+  rows of ``value`` below the sensor's lowest beam (none where H is a multiple)."""
   extra = -sensor.shape[0] % multiple
   if not extra:
     return x

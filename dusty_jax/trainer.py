@@ -325,8 +325,9 @@ def init_run(workdir: str, config, params) -> None:
   state = init_state(setup, jax.random.key(config.seed)).replace(g_params=variables,
                                                                  ema_params=variables)
   mngr = checkpoint.manager(workdir, keep=config.keep_checkpoints)
-  checkpoint.save(mngr, 0, state, force=True)
-  checkpoint.wait(mngr)
+  with errors.interrupts_deferred():  # orbax's save is not cut half-way
+    checkpoint.save(mngr, 0, state, force=True)
+    checkpoint.wait(mngr)
 
 
 @jax.jit

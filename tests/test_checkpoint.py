@@ -1,5 +1,6 @@
 """checkpoint.py alone: how a failed save reads, and quiet's filters."""
 
+import json
 import logging
 import os
 import re
@@ -52,3 +53,43 @@ def test_quiet_nests_and_drops_only_orbax_records():
       assert not absl.filter(orbax) and absl.filter(ours)
     assert not absl.filter(orbax)  # the inner exit left the outer's filter
   assert absl.filter(orbax)
+
+
+def test_a_truncated_step_without_a_size_record_falls_back_by_type(tmp_path):
+  """A step the size record does not vouch for (a run's steps from before
+  the record, or from a process that died) is read; orbax's partial read of
+  a truncated array raises a bare Exception, which still falls back."""
+  state = {'ema': {'w': np.arange(4096, dtype=np.float32)}, 'opt': np.zeros(3, np.float32)}
+  mngr = checkpoint.manager(str(tmp_path / 'run'))
+  for step in (1, 2):
+    checkpoint.save(mngr, step, {**state, 'ema': {'w': state['ema']['w'] + step}})
+    checkpoint.wait(mngr)
+  folder = tmp_path / 'run' / 'checkpoints'
+  os.remove(str(folder) + checkpoint.SIZES)
+  for path in (folder / '2').rglob('*'):
+    if path.is_file() and path.stat().st_size > 1024:  # the arrays' data files
+      path.write_bytes(path.read_bytes()[:path.stat().st_size // 3])
+  lines = []
+  item, step = checkpoint.restore_item(str(folder), 'ema', log=lines.append)
+  assert step == 1 and np.array_equal(item['w'], state['ema']['w'] + 1)
+  assert lines[0].startswith(f'warning: checkpoint step 2 in {folder} does not restore '
+                             '(unreadable: ')
+  with pytest.raises(checkpoint.CheckpointError, match='checkpoint step 2 does not restore'):
+    checkpoint.restore_item(str(folder), 'ema', step=2, log=lines.append)
+
+
+def test_steps_found_when_a_run_opens_are_read_unchecked(tmp_path):
+  """Sizes are noted for the steps a run saves, not for those it found on
+  opening (an earlier process may have died damaging them)."""
+  state = {'w': np.ones(64, np.float32)}
+  mngr = checkpoint.manager(str(tmp_path / 'run'))
+  checkpoint.save(mngr, 1, state)
+  checkpoint.wait(mngr)
+  sizes = str(tmp_path / 'run' / 'checkpoints') + checkpoint.SIZES
+  os.remove(sizes)
+  mngr = checkpoint.manager(str(tmp_path / 'run'))
+  checkpoint.save(mngr, 2, state)
+  checkpoint.wait(mngr)
+  with open(sizes) as f:
+    record = json.load(f)
+  assert record['1'] is None and record['2']

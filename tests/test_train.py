@@ -431,7 +431,7 @@ def test_damaged_checkpoints_are_one_line_each_and_loads_are_silent(smoke_run, t
   assert blocks.pop('end') == []
   assert blocks.pop(f'load {runs[0]}') == [] and blocks.pop(f'resume {runs[0]}') == []
   assert 'Event loop is closed' not in res.stderr and 'Traceback' not in res.stderr
-  reasons = {'truncate': r'data file truncated: default/\S*d/[0-9a-f]+ has \d+ bytes, '
+  reasons = {'truncate': r'file truncated: default/\S*d/[0-9a-f]+ has \d+ bytes, '
                          r'\d+ when saved, and \d+ more files',
              'metadata': r'file missing: _CHECKPOINT_METADATA, and \d+ more files',
              'empty': 'empty directory'}
@@ -457,7 +457,7 @@ def test_a_step_unlike_its_manifest_is_not_read(smoke_run, tmp_path, monkeypatch
   messages = []
   _, step = checkpoint.restore_item(str(copy / 'checkpoints'), 'ema_params',
                                     log=messages.append)
-  assert (step, read) == (2, [2]) and 'data file truncated: default/' in messages[0]
+  assert (step, read) == (2, [2]) and 'file truncated: default/' in messages[0]
 
 
 def test_a_save_without_room_is_refused_before_orbax_writes(tmp_path, monkeypatch):
