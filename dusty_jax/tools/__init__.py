@@ -39,6 +39,20 @@ def parse(values: flags.FlagValues, argv, doc: str) -> None:
     cli.fail(f'unexpected arguments {rest[1:]} (see --help)', cli.USAGE)
 
 
+def valid_corruption(spec: str, removing: bool = False) -> bool:
+  """--corrupt's validator: a bad spec (with ``removing``, also one that
+  removes no pixel) is a bad flag (exit 2)."""
+  if spec:
+    from dusty_jax import corrupt  # JAX: only for a given --corrupt
+    try:
+      removes = corrupt.removes(spec)  # (parses it: a bad spec raises)
+      if removing and not removes:
+        raise ValueError(f'corruption {spec!r} removes no pixel; give drop:F or beams:K')
+    except ValueError as e:
+      raise flags.ValidationError(str(e)) from None
+  return True
+
+
 def pretrained_names() -> list[str]:
   """The models dusty_jax/pretrained ships, read from the folder without
   importing it (which loads JAX), so that --help can name them."""

@@ -66,24 +66,13 @@ def main(argv=None):
   flags.register_multi_flags_validator(
       ['input', 'split'], lambda v: bool(v['input']) != bool(v['split']),
       'give exactly one of --input and --split', flag_values=f)
-  flags.register_validator('corrupt', _corruption, flag_values=f)
+  flags.register_validator('corrupt', tools.valid_corruption, flag_values=f)
   flags.DEFINE_enum('protocol', 'reference', ['reference', 'paper'],
                     "Table III's Chamfer distance: 'reference' over valid points, "
                     "'paper' as the authors (dropped pixels at the origin in both)",
                     flag_values=f)
   tools.parse(f, argv, __doc__)
   tools.run(run, f)
-
-
-def _corruption(spec: str) -> bool:
-  """--corrupt's validator: a bad spec is a bad flag (exit 2)."""
-  if spec:
-    from dusty_jax import corrupt  # JAX: only for a given --corrupt
-    try:
-      corrupt.parse(spec)
-    except ValueError as e:
-      raise flags.ValidationError(str(e)) from None
-  return True
 
 
 def write_scan(stem: str, clean, target, res, sensor):

@@ -55,25 +55,14 @@ def main(argv=None):
   flags.DEFINE_string('out', 'restored', 'output folder', flag_values=f)
   flags.register_validator('methods', lambda ms: ms and set(ms) <= set(METHODS),
                            f'--methods: each one of {", ".join(METHODS)}', flag_values=f)
-  flags.register_validator('corrupt', _removing, flag_values=f)
+  flags.register_validator('corrupt', lambda s: tools.valid_corruption(s, removing=True),
+                           flag_values=f)
   flags.register_multi_flags_validator(
       ['corrupt', 'source'], lambda v: not (v['corrupt'] and v['source']),
       'give at most one of --corrupt (a whole input) and --source (a sparser sensor)',
       flag_values=f)
   tools.parse(f, argv, __doc__)
   tools.run(run, f)
-
-
-def _removing(spec: str) -> bool:
-  """--corrupt's validator: a corruption that removes pixels (exit 2 else)."""
-  if spec:
-    from dusty_jax import corrupt  # JAX: only for a given --corrupt
-    try:
-      if not corrupt.removes(spec):
-        raise ValueError(f'corruption {spec!r} removes no pixel; give drop:F or beams:K')
-    except ValueError as e:
-      raise flags.ValidationError(str(e)) from None
-  return True
 
 
 def inputs(a, params):
