@@ -575,10 +575,11 @@ def estimate(sweeps, ring=None, name: str = 'estimated',
   else:
     beams, on = _beams_by_elevation(returns, named)
     ranges = returns.r[on]  # (the spec's range: of all the returns the beams hold)
-    far = returns.r >= NEAR_OFFSETS * np.nanmax(np.abs(beams.b))
+    reach = float(NEAR_OFFSETS * np.nanmax(np.abs(beams.b)))
+    far = returns.r >= reach
     if not far.all() and far.mean() >= MIN_FAR_SHARE and far.sum() >= 100:
       returns = dataclasses.replace(returns.where(far), near=returns.near + int((~far).sum()),
-                                    fit_from=float(NEAR_OFFSETS * np.nanmax(np.abs(beams.b))))
+                                    fit_from=reach)
       beams, on = _beams_by_elevation(returns, named)
     returns, beyond = returns.where(on), int((~on).sum())
   top_first = np.argsort(-beams.a, kind='stable')
